@@ -1,0 +1,168 @@
+"""Structure-of-arrays patch table: the one data structure the solver walks.
+
+A patch is a triangle after meshing.  Every per-patch quantity is a row of an
+array; derived geometry (area, normal, centroid) is computed once and cached.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+__all__ = ["Patches", "triangle_areas", "triangle_normals", "subdivide"]
+
+
+def triangle_areas(tri: np.ndarray) -> np.ndarray:
+    """tri : (n, 3, 3) float -> (n,) float64 areas."""
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
+
+
+def triangle_normals(tri: np.ndarray) -> np.ndarray:
+    """tri : (n, 3, 3) float -> (n, 3) unit normals (right-hand rule); zero rows stay zero."""
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    out = np.zeros_like(cross)
+    ok = norm > 0
+    out[ok] = cross[ok] / norm[ok, None]
+    return out
+
+
+def subdivide(vertices: np.ndarray, faces: np.ndarray, max_edge: float):
+    """Split triangles until no edge is longer than ``max_edge``.
+
+    Returns ``(vertices (V,3) float64, faces (n,3) int64, index (n,) int64)``
+    where ``index`` maps each new face to the face it came from.  Uses
+    trimesh's midpoint subdivision, which keeps shared edges watertight.
+    """
+    import trimesh.remesh
+
+    if max_edge is None or max_edge <= 0 or len(faces) == 0:
+        return vertices, faces, np.arange(len(faces), dtype=np.int64)
+    v, f, idx = trimesh.remesh.subdivide_to_size(
+        vertices, faces, max_edge=float(max_edge), max_iter=64, return_index=True
+    )
+    return np.asarray(v, np.float64), np.asarray(f, np.int64), np.asarray(idx, np.int64)
+
+
+@dataclass
+class Patches:
+    """The patch table.
+
+    ==========  ==========  ===================================================
+    field       shape       meaning (units)
+    ==========  ==========  ===================================================
+    vertices    (V, 3) f8   mesh vertices (m)
+    faces       (n, 3) i8   vertex indices of each patch, counter-clockwise
+                            seen from the front (normal side)
+    rho         (n, 3) f8   diffuse reflectance per RGB channel, in [0, 1)
+    emission    (n, 3) f8   emitted exitance E (W/m^2)
+    source      (n,)   i8   index of the input triangle this patch came from
+    obj         (n,)   i4   index into ``names`` (object / material of origin)
+    names       list[str]   object names, for messages and reports
+    radiosity   (n, 3) f8   B (W/m^2), starts at E
+    unshot      (n, 3) f8   dB (W/m^2), radiosity not yet shot, starts at E
+    ==========  ==========  ===================================================
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    rho: np.ndarray
+    emission: np.ndarray
+    source: np.ndarray
+    obj: np.ndarray
+    names: list = field(default_factory=list)
+    radiosity: np.ndarray | None = None
+    unshot: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, np.float64)
+        self.faces = np.ascontiguousarray(self.faces, np.int64)
+        n = len(self.faces)
+        self.rho = np.ascontiguousarray(np.broadcast_to(self.rho, (n, 3)), np.float64)
+        self.emission = np.ascontiguousarray(np.broadcast_to(self.emission, (n, 3)), np.float64)
+        self.source = np.ascontiguousarray(self.source, np.int64)
+        self.obj = np.ascontiguousarray(self.obj, np.int32)
+        if self.radiosity is None:
+            self.radiosity = self.emission.copy()
+        if self.unshot is None:
+            self.unshot = self.emission.copy()
+
+    # -- derived geometry (cached) -------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.faces)
+
+    @cached_property
+    def triangles(self) -> np.ndarray:
+        """(n, 3, 3) float64 corner positions."""
+        return self.vertices[self.faces]
+
+    @cached_property
+    def area(self) -> np.ndarray:
+        """(n,) float64 patch areas (m^2)."""
+        return triangle_areas(self.triangles)
+
+    @cached_property
+    def normal(self) -> np.ndarray:
+        """(n, 3) float64 unit front normals."""
+        return triangle_normals(self.triangles)
+
+    @cached_property
+    def centroid(self) -> np.ndarray:
+        """(n, 3) float64 centroids."""
+        return self.triangles.mean(axis=1)
+
+    @cached_property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 axis-aligned box of the vertices used."""
+        used = self.vertices[np.unique(self.faces)] if len(self.faces) else np.zeros((1, 3))
+        return np.stack([used.min(axis=0), used.max(axis=0)])
+
+    @cached_property
+    def scale(self) -> float:
+        """Length of the box diagonal (m); at least a tiny positive number."""
+        return max(float(np.linalg.norm(self.bounds[1] - self.bounds[0])), 1e-30)
+
+    # -- power bookkeeping -----------------------------------------------------------
+    def power(self, exitance: np.ndarray) -> np.ndarray:
+        """(n, 3) power (W) of a per-patch exitance array."""
+        return exitance * self.area[:, None]
+
+    @property
+    def emitted_power(self) -> np.ndarray:
+        """(3,) total emitted power (W)."""
+        return self.power(self.emission).sum(axis=0)
+
+    @property
+    def unshot_power(self) -> np.ndarray:
+        """(3,) total unshot power (W)."""
+        return self.power(self.unshot).sum(axis=0)
+
+    def reset(self) -> None:
+        """Start over: B = dB = E."""
+        self.radiosity = self.emission.copy()
+        self.unshot = self.emission.copy()
+
+    def subset(self, index: np.ndarray) -> "Patches":
+        """A new table with the rows ``index`` (vertices are shared, not copied)."""
+        index = np.asarray(index)
+        return Patches(
+            vertices=self.vertices,
+            faces=self.faces[index],
+            rho=self.rho[index],
+            emission=self.emission[index],
+            source=self.source[index],
+            obj=self.obj[index],
+            names=self.names,
+            radiosity=self.radiosity[index].copy(),
+            unshot=self.unshot[index].copy(),
+        )
+
+    @property
+    def is_grey(self) -> bool:
+        """True when every rho and E has equal channels (one channel would do)."""
+        return bool(
+            np.all(self.rho == self.rho[:, :1]) and np.all(self.emission == self.emission[:, :1])
+        )

@@ -1,0 +1,135 @@
+"""Ray casting: one module owns Embree, float32 conversion and the self-hit offset.
+
+``Tracer(triangles)`` builds an Embree scene once (embreex), then answers many
+batched queries.  Coordinates are shifted to the box centre before the float32
+conversion so that kilometre-wide scenes keep their precision.  A numpy
+fallback with the same interface (brute-force Moller-Trumbore, for tiny scenes
+and for checking Embree) is used when embreex cannot be imported or when asked.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["Tracer", "MISS", "embree_available"]
+
+MISS = -1
+
+try:  # defer the failure: only a Tracer that needs Embree raises
+    from embreex import rtcore_scene as _rtcs
+    from embreex.mesh_construction import TriangleMesh as _TriangleMesh
+
+    _EMBREE_ERROR: ImportError | None = None
+except ImportError as exc:  # pragma: no cover - exercised only without embreex
+    _rtcs = None
+    _EMBREE_ERROR = exc
+
+
+def embree_available() -> bool:
+    return _rtcs is not None
+
+
+class Tracer:
+    """Closest-hit and occlusion queries against a fixed set of triangles.
+
+    triangles : (n, 3, 3) float  corner positions
+    backend   : "embree" (default when available) or "numpy"
+    """
+
+    def __init__(self, triangles: np.ndarray, backend: str | None = None):
+        tri = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
+        self.n = len(tri)
+        if backend is None:
+            backend = "embree" if embree_available() else "numpy"
+        if backend == "embree" and not embree_available():
+            raise ImportError(f"embreex is not importable: {_EMBREE_ERROR}")
+        self.backend = backend
+        if self.n:
+            lo, hi = tri.reshape(-1, 3).min(axis=0), tri.reshape(-1, 3).max(axis=0)
+        else:
+            lo = hi = np.zeros(3)
+        self.center = 0.5 * (lo + hi)
+        self.scale = max(float(np.linalg.norm(hi - lo)), 1e-30)
+        local = tri - self.center
+        if backend == "embree":
+            self._scene = _rtcs.EmbreeScene()
+            if self.n:
+                verts = local.reshape(-1, 3).astype(np.float32)
+                faces = np.arange(3 * self.n, dtype=np.int32).reshape(-1, 3)
+                _TriangleMesh(self._scene, verts, faces)
+        else:
+            self._tri = local
+
+    # ------------------------------------------------------------------------------
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray):
+        """Closest hit of each ray.
+
+        origins, dirs : (m, 3) float (dirs need not be unit)
+        returns (prim (m,) int64, MISS where nothing is hit; t (m,) float64 in units of |dir|)
+        """
+        origins = np.asarray(origins, np.float64) - self.center
+        dirs = np.asarray(dirs, np.float64)
+        m = len(origins)
+        if m == 0 or self.n == 0:
+            return np.full(m, MISS, np.int64), np.full(m, np.inf)
+        if self.backend == "embree":
+            res = self._scene.run(
+                np.ascontiguousarray(origins, np.float32),
+                np.ascontiguousarray(dirs, np.float32),
+                output=1,
+            )
+            prim = res["primID"].astype(np.int64)
+            t = res["tfar"].astype(np.float64)
+            t[prim < 0] = np.inf
+            prim[prim < 0] = MISS
+            return prim, t
+        return _numpy_intersect(self._tri, origins, dirs)
+
+    def occluded(self, origins: np.ndarray, dirs: np.ndarray, tmax: np.ndarray) -> np.ndarray:
+        """(m,) bool: is anything hit with 0 < t < tmax (t in units of |dir|)?"""
+        origins = np.asarray(origins, np.float64) - self.center
+        dirs = np.asarray(dirs, np.float64)
+        m = len(origins)
+        if m == 0 or self.n == 0:
+            return np.zeros(m, bool)
+        tmax = np.broadcast_to(np.asarray(tmax, np.float64), (m,))
+        if self.backend == "embree":
+            res = self._scene.run(
+                np.ascontiguousarray(origins, np.float32),
+                np.ascontiguousarray(dirs, np.float32),
+                dists=np.ascontiguousarray(tmax, np.float32),
+                query="OCCLUDED",
+            )
+            return np.asarray(res) != MISS
+        prim, t = _numpy_intersect(self._tri, origins, dirs)
+        return (prim != MISS) & (t < tmax)
+
+
+def _numpy_intersect(tri: np.ndarray, origins: np.ndarray, dirs: np.ndarray, chunk: int = 2048):
+    """Brute-force Moller-Trumbore over all triangles, vectorised in ray chunks."""
+    m = len(origins)
+    prim = np.full(m, MISS, np.int64)
+    tbest = np.full(m, np.inf)
+    v0 = tri[:, 0]
+    e1 = tri[:, 1] - v0
+    e2 = tri[:, 2] - v0
+    for s in range(0, m, chunk):
+        o = origins[s : s + chunk, None, :]
+        d = dirs[s : s + chunk, None, :]
+        p = np.cross(d, e2[None])
+        det = np.einsum("rtk,tk->rt", p, e1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / det
+            tv = o - v0[None]
+            u = np.einsum("rtk,rtk->rt", tv, p) * inv
+            q = np.cross(tv, e1[None])
+            v = np.einsum("rtk,rtk->rt", d, q) * inv
+            t = np.einsum("rtk,tk->rt", q, e2) * inv
+        ok = (np.abs(det) > 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+        t = np.where(ok, t, np.inf)
+        j = np.argmin(t, axis=1)
+        tj = t[np.arange(len(j)), j]
+        hit = np.isfinite(tj)
+        prim[s : s + chunk][hit] = j[hit]
+        tbest[s : s + chunk][hit] = tj[hit]
+    return prim, tbest
