@@ -1,0 +1,93 @@
+"""The energy ledger and convergence measures.
+
+Every watt emitted is, at any moment, in exactly one place::
+
+    emitted = absorbed + unshot (patches) + in_flight (twin buffers)
+              + escaped + back_faces
+
+The solver moves power between these accounts in float64; ``closure()``
+reports how far the books are from balancing (round-off only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Ledger", "rms_error"]
+
+
+def _zeros() -> np.ndarray:
+    return np.zeros(3, np.float64)
+
+
+@dataclass
+class Ledger:
+    """Power accounts (W, RGB, float64).  ``unshot`` and ``in_flight`` are set by their owners."""
+
+    emitted: np.ndarray = field(default_factory=_zeros)  #: W, total emitted power
+    absorbed: np.ndarray = field(default_factory=_zeros)  #: W, (1 - rho) share of every hit
+    escaped: np.ndarray = field(default_factory=_zeros)  #: W, rays that left the scene
+    back_faces: np.ndarray = field(default_factory=_zeros)  #: W, rays that hit a back face
+    unshot: np.ndarray = field(default_factory=_zeros)  #: W, sum of dB * A over patches
+    in_flight: np.ndarray = field(default_factory=_zeros)  #: W, power held in twin buffers
+
+    def accounted(self) -> np.ndarray:
+        """(3,) W: everything the books say is somewhere."""
+        return self.absorbed + self.unshot + self.in_flight + self.escaped + self.back_faces
+
+    def closure(self) -> float:
+        """Relative imbalance |emitted - accounted| / emitted (0 when nothing is emitted)."""
+        total = float(self.emitted.sum())
+        if total <= 0.0:
+            return float(np.abs(self.accounted()).sum())
+        return float(np.abs(self.emitted - self.accounted()).sum() / total)
+
+    def residual(self) -> float:
+        """Share of the emitted power not yet settled: (unshot + in flight) / emitted."""
+        total = float(self.emitted.sum())
+        if total <= 0.0:
+            return 0.0
+        return float((self.unshot.sum() + self.in_flight.sum()) / total)
+
+    def __iadd__(self, other: "Ledger") -> "Ledger":
+        for name in ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        return self
+
+    def copy(self) -> "Ledger":
+        return Ledger(**{k: np.array(v, np.float64) for k, v in self.as_arrays().items()})
+
+    def as_arrays(self) -> dict:
+        return {
+            "emitted": self.emitted,
+            "absorbed": self.absorbed,
+            "escaped": self.escaped,
+            "back_faces": self.back_faces,
+            "unshot": self.unshot,
+            "in_flight": self.in_flight,
+        }
+
+    def as_dict(self) -> dict:
+        """JSON-ready: every account as [r, g, b] W, plus closure and residual."""
+        out = {k: [float(x) for x in v] for k, v in self.as_arrays().items()}
+        out["closure"] = self.closure()
+        out["residual"] = self.residual()
+        return out
+
+
+def rms_error(b: np.ndarray, reference: np.ndarray, area: np.ndarray) -> float:
+    """Area-weighted RMS error sqrt(sum_i |B*_i - B_i|^2 A_i / sum_i A_i) (W/m^2).
+
+    b, reference : (n, 3) or (n,) radiosity; area : (n,).  The squared error of a
+    patch is the mean over its channels.
+    """
+    diff = np.asarray(reference, np.float64) - np.asarray(b, np.float64)
+    sq = diff * diff
+    if sq.ndim == 2:
+        sq = sq.mean(axis=1)
+    total = float(area.sum())
+    if total <= 0.0:
+        return 0.0
+    return float(np.sqrt(np.dot(sq, area) / total))

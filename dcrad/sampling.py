@@ -1,0 +1,117 @@
+"""Sampling: low-discrepancy points, triangle and cosine-hemisphere maps, frames.
+
+All maps are vectorised over rows.  Stratification comes from a rank-1
+Kronecker lattice (Roberts' R_d sequence) with a Cranley-Patterson random
+shift per shooting patch, so every shot is an independent, randomly shifted,
+well-stratified point set over (position on the triangle) x (direction).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "kronecker_alpha",
+    "lattice",
+    "triangle_points",
+    "concentric_disk",
+    "concentric_disk_inverse",
+    "cosine_hemisphere",
+    "onb",
+]
+
+
+def kronecker_alpha(dim: int) -> np.ndarray:
+    """(dim,) generator of the R_d sequence: 1/phi_d^k, phi_d the root of x^(d+1) = x + 1."""
+    phi = 2.0
+    for _ in range(64):
+        phi = (1.0 + phi) ** (1.0 / (dim + 1))
+    return np.mod(1.0 / phi ** np.arange(1, dim + 1), 1.0)
+
+
+def lattice(index: np.ndarray, shift: np.ndarray, dim: int) -> np.ndarray:
+    """Points of a randomly shifted R_d lattice.
+
+    index : (m,) int   point number within its own set (0, 1, 2, ...)
+    shift : (m, dim)   random shift of the set the point belongs to
+    returns (m, dim) float64 in [0, 1)
+    """
+    alpha = kronecker_alpha(dim)
+    # (index + 0.5) * alpha keeps the first point away from the lattice origin
+    return np.mod((index[:, None] + 0.5) * alpha[None, :] + shift, 1.0)
+
+
+def triangle_points(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Uniform points on triangles by the square-root map.
+
+    v0, v1, v2 : (m, 3) corners; u : (m, 2) in [0,1)^2 -> (m, 3) points
+    """
+    s = np.sqrt(u[:, 0])
+    b1 = s * (1.0 - u[:, 1])
+    b2 = s * u[:, 1]
+    return v0 + b1[:, None] * (v1 - v0) + b2[:, None] * (v2 - v0)
+
+
+def concentric_disk(u: np.ndarray) -> np.ndarray:
+    """Shirley-Chiu concentric map of the unit square onto the unit disk.
+
+    u : (m, 2) in [0,1)^2 -> (m, 2) points with x^2 + y^2 <= 1 (area preserving up to pi/4)
+    """
+    a = 2.0 * u[:, 0] - 1.0
+    b = 2.0 * u[:, 1] - 1.0
+    first = np.abs(a) > np.abs(b)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(first, a, b)
+        phi = np.where(first, (np.pi / 4) * (b / a), (np.pi / 2) - (np.pi / 4) * (a / b))
+    zero = (a == 0) & (b == 0)
+    r = np.where(zero, 0.0, r)
+    phi = np.where(zero, 0.0, phi)
+    return np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
+
+
+def concentric_disk_inverse(p: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`concentric_disk`: (m, 2) disk points -> (m, 2) square points in [0,1]^2."""
+    x, y = p[:, 0], p[:, 1]
+    r = np.sqrt(x * x + y * y)
+    phi = np.arctan2(y, x)  # (-pi, pi]
+    # wedge of the square the point came from
+    phi = np.where(phi < -np.pi / 4, phi + 2 * np.pi, phi)  # now in [-pi/4, 7pi/4)
+    a = np.empty_like(r)
+    b = np.empty_like(r)
+    w0 = phi < np.pi / 4  # |a| > |b|, a > 0
+    w1 = (phi >= np.pi / 4) & (phi < 3 * np.pi / 4)  # b > 0
+    w2 = (phi >= 3 * np.pi / 4) & (phi < 5 * np.pi / 4)  # a < 0
+    w3 = phi >= 5 * np.pi / 4  # b < 0
+    a[w0] = r[w0]
+    b[w0] = r[w0] * phi[w0] / (np.pi / 4)
+    b[w1] = r[w1]
+    a[w1] = -r[w1] * (phi[w1] - np.pi / 2) / (np.pi / 4)
+    a[w2] = -r[w2]
+    b[w2] = -r[w2] * (phi[w2] - np.pi) / (np.pi / 4)
+    b[w3] = -r[w3]
+    a[w3] = r[w3] * (phi[w3] - 3 * np.pi / 2) / (np.pi / 4)
+    return np.stack([(a + 1.0) * 0.5, (b + 1.0) * 0.5], axis=1)
+
+
+def cosine_hemisphere(u: np.ndarray) -> np.ndarray:
+    """Cosine-distributed directions around +z: (m, 2) in [0,1)^2 -> (m, 3) unit vectors.
+
+    Malley's method on the concentric disk: equal areas of the square map to
+    equal projected solid angle, so the square's cells are cosine-weighted bins.
+    """
+    d = concentric_disk(u)
+    z = np.sqrt(np.maximum(0.0, 1.0 - np.einsum("ij,ij->i", d, d)))
+    return np.column_stack([d, z])
+
+
+def onb(n: np.ndarray):
+    """Orthonormal tangent frames (Duff et al. 2017, branchless).
+
+    n : (m, 3) unit normals -> (t (m,3), b (m,3)) with t x b = n
+    """
+    sign = np.where(n[:, 2] >= 0.0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.column_stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]])
+    bt = np.column_stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]])
+    return t, bt

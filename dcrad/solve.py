@@ -1,0 +1,214 @@
+"""Progressive refinement for one (sub)scene: select shooters, shoot, repeat.
+
+``Solver`` owns the patch table, its Embree scene, the random stream and the
+ledger.  ``step()`` shoots the top-K unshot patches in one Embree call;
+``run()`` steps until the residual tolerance, the time limit, the ray budget
+or an external stop request, recording snapshots of B at geometric intervals
+of rays for the error-against-time report.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import TOL, SolverConfig
+from .energy import Ledger
+from .patches import Patches
+from .rays import Tracer
+from .shoot import deposit, patch_rays, trace
+
+__all__ = ["Solver", "Snapshot", "solve"]
+
+
+@dataclass
+class Snapshot:
+    """State of a run at one moment (B is kept separately in ``Solver.snapshot_B``)."""
+
+    time: float  #: s of wall time since the run started
+    shots: int  #: patches shot so far (the paper's iterations)
+    rays: int  #: rays traced so far
+    residual: float  #: (unshot + in flight) / emitted
+    closure: float  #: ledger imbalance, relative
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Stats:
+    shots: int = 0  #: patches shot
+    rays: int = 0  #: rays traced
+    batches: int = 0  #: Embree calls
+    trace_seconds: float = 0.0  #: s spent inside trace (Embree + tally)
+    wall_seconds: float = 0.0  #: s of the whole run
+    stopped_by: str = ""  #: tolerance | time_limit | ray_budget | stopped | no_emitters
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class Solver:
+    """Progressive-refinement radiosity over one patch table.
+
+    patches : the table (its radiosity/unshot arrays are updated in place)
+    config  : SolverConfig
+    tracer  : optional prebuilt Tracer over ``patches.triangles`` (plus boundary
+              primitives after the patches, for subscenes)
+    """
+
+    def __init__(self, patches: Patches, config: SolverConfig | None = None, tracer: Tracer | None = None):
+        self.patches = patches
+        self.config = config or SolverConfig()
+        self.tracer = tracer if tracer is not None else Tracer(patches.triangles)
+        self.rng = np.random.default_rng(self.config.seed)
+        self.ledger = Ledger(emitted=patches.emitted_power.copy())
+        self.ledger.unshot = patches.unshot_power.copy()
+        self.stats = Stats()
+        self.back_by_obj = np.zeros(max(len(patches.names), 1))
+        emitted = float(self.ledger.emitted.sum())
+        #: W carried by one ray (fixed power per ray)
+        self.power_per_ray = emitted / self.config.rays_per_power if emitted > 0 else 1.0
+        self.snapshots: list[Snapshot] = []
+        self.snapshot_B: list[np.ndarray] = []
+        self._next_snapshot = 0
+        self._t0 = time.perf_counter()
+
+    # == one Embree call ===========================================================
+    def select(self):
+        """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W)."""
+        cfg, p = self.config, self.patches
+        power = p.unshot * p.area[:, None]
+        scalar = power.sum(axis=1)
+        n = len(scalar)
+        k = min(cfg.max_shooters, n)
+        # Top-K by unshot power, largest first
+        idx = np.argpartition(-scalar, k - 1)[:k] if k < n else np.arange(n)
+        idx = idx[np.argsort(-scalar[idx], kind="stable")]
+        idx = idx[scalar[idx] > 0.0]
+        # Rays in proportion to power, clamped; fill the batch's ray budget
+        counts = np.clip(np.ceil(scalar[idx] / self.power_per_ray), cfg.min_rays, cfg.max_rays_per_shot)
+        counts = counts.astype(np.int64)
+        fits = np.cumsum(counts) <= cfg.batch_rays
+        fits[:1] = True
+        idx, counts = idx[fits], counts[fits]
+        return idx, counts, power[idx]
+
+    def step(self) -> int:
+        """Shoot one batch; return the number of rays traced (0 when nothing is unshot)."""
+        idx, counts, power = self.select()
+        if len(idx) == 0:
+            return 0
+        p = self.patches
+        t0 = time.perf_counter()
+        batch = patch_rays(p, idx, counts, power, self.rng)
+        tally = trace(self.tracer, batch, p)
+        self.stats.trace_seconds += time.perf_counter() - t0
+
+        # Commit: shooters give up their unshot power, receivers keep rho of what arrived
+        p.unshot[idx] = 0.0
+        absorbed = deposit(p, tally.received)
+        led = self.ledger
+        led.absorbed = led.absorbed + absorbed
+        led.escaped = led.escaped + tally.escaped
+        led.back_faces = led.back_faces + tally.back_faces
+        led.unshot = p.unshot_power
+        self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
+
+        self.stats.shots += len(idx)
+        self.stats.rays += len(batch)
+        self.stats.batches += 1
+        return len(batch)
+
+    # == the loop ==================================================================
+    def elapsed(self) -> float:
+        return time.perf_counter() - self._t0
+
+    def residual(self) -> float:
+        return self.ledger.residual()
+
+    def snapshot(self, force: bool = False) -> None:
+        """Record a snapshot when the ray count passed the next geometric mark."""
+        if not force and self.stats.rays < self._next_snapshot:
+            return
+        if self.snapshots and self.snapshots[-1].rays == self.stats.rays:
+            return
+        self.snapshots.append(
+            Snapshot(self.elapsed(), self.stats.shots, self.stats.rays, self.residual(), self.ledger.closure())
+        )
+        self.snapshot_B.append(self.patches.radiosity.astype(np.float32))
+        first = max(self.config.min_rays, 1024)
+        self._next_snapshot = max(first, int(math.ceil(self.stats.rays * self.config.snapshot_factor)))
+
+    def stop_reason(self) -> str:
+        cfg = self.config
+        if float(self.ledger.emitted.sum()) <= 0.0:
+            return "no_emitters"
+        if self.residual() <= cfg.tol:
+            return "tolerance"
+        if cfg.time_limit and self.elapsed() >= cfg.time_limit:
+            return "time_limit"
+        if cfg.max_rays and self.stats.rays >= cfg.max_rays:
+            return "ray_budget"
+        return ""
+
+    def run(self, on_progress=None, should_stop=None) -> Stats:
+        """Step until a stop criterion; ``should_stop()`` True ends the run cleanly.
+
+        on_progress(solver) is called after every batch.
+        """
+        self._t0 = time.perf_counter() - self.stats.wall_seconds
+        self.snapshot(force=True)
+        while True:
+            reason = self.stop_reason()
+            if not reason and should_stop is not None and should_stop():
+                reason = "stopped"
+            if reason:
+                break
+            if self.step() == 0:
+                reason = "tolerance"
+                break
+            self.snapshot()
+            if on_progress is not None:
+                on_progress(self)
+        self.snapshot(force=True)
+        self.stats.stopped_by = reason
+        self.stats.wall_seconds = self.elapsed()
+        return self.stats
+
+    # == reporting =================================================================
+    def eta(self) -> float:
+        """Seconds to the tolerance, from the log-residual slope of recent snapshots (nan if unknown)."""
+        snaps = [s for s in self.snapshots[-6:] if s.residual > 0]
+        now = self.residual()
+        if len(snaps) < 2 or now <= 0:
+            return float("nan")
+        a, b = snaps[0], snaps[-1]
+        if b.time <= a.time or b.residual >= a.residual:
+            return float("nan")
+        rate = math.log(a.residual / b.residual) / (b.time - a.time)
+        return max(0.0, math.log(now / max(self.config.tol, 1e-300)) / rate)
+
+    def warnings(self) -> list[str]:
+        """Warnings about the run: flipped normals (back-face share of shot power)."""
+        out = []
+        shot = float(self.ledger.emitted.sum() - self.ledger.unshot.sum())
+        back = float(self.ledger.back_faces.sum())
+        if shot > 0 and back / shot > TOL.backface_warn:
+            order = np.argsort(-self.back_by_obj)
+            worst = [self.patches.names[i] for i in order[:5] if self.back_by_obj[i] > 0 and i < len(self.patches.names)]
+            out.append(
+                f"{100 * back / shot:.1f}% of the shot power hit back faces; normals are probably "
+                f"flipped on: {', '.join(worst)}"
+            )
+        return out
+
+
+def solve(patches: Patches, config: SolverConfig | None = None, **run_kwargs) -> Solver:
+    """Convenience: build a Solver, run it, return it."""
+    solver = Solver(patches, config)
+    solver.run(**run_kwargs)
+    return solver
