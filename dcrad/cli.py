@@ -1,0 +1,145 @@
+"""The ``dcrad`` command.
+
+Exit codes:
+
+====  =======================================================
+0     success
+1     internal error (a bug: please report it with the traceback)
+2     bad input: scene, settings or partition (one readable line)
+130   interrupted twice (the first Ctrl-C stops cleanly and writes results)
+====  =======================================================
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import tempfile
+from pathlib import Path
+
+from .config import SolverConfig
+from .errors import DcradError
+
+__all__ = ["main"]
+
+log = logging.getLogger("dcrad")
+
+
+def _solver_args(p: argparse.ArgumentParser) -> None:
+    d = SolverConfig()
+    p.add_argument("--tol", type=float, default=d.tol, help=f"stop at this residual, unshot/emitted (default {d.tol})")
+    p.add_argument("--time-limit", type=float, default=d.time_limit, help="stop after this many seconds (0: none)")
+    p.add_argument("--max-rays", type=int, default=d.max_rays, help="stop after this many rays (0: none)")
+    p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
+    p.add_argument("--rays-per-power", type=float, default=d.rays_per_power,
+                   help=f"rays for shooting the emitted power once; sets the power per ray (default {d.rays_per_power:g})")
+    p.add_argument("--patch-size", type=float, default=0.0,
+                   help="largest patch edge in metres (default: 1/40 of the scene diagonal)")
+    p.add_argument("--scale", type=float, default=1.0, help="multiply scene coordinates by this (unit conversion to metres)")
+
+
+def _config(args) -> SolverConfig:
+    return SolverConfig(seed=args.seed, tol=args.tol, time_limit=args.time_limit,
+                        max_rays=args.max_rays, rays_per_power=args.rays_per_power)
+
+
+class _Interrupt:
+    """First Ctrl-C asks the solver to stop cleanly; the second one aborts."""
+
+    def __init__(self):
+        self.requested = False
+
+    def __call__(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\ndcrad: stopping after this batch and writing results (Ctrl-C again to abort)", file=sys.stderr)
+
+    def should_stop(self) -> bool:
+        return self.requested
+
+
+def cmd_solve(args) -> int:
+    from .pipeline import resolve_scene, solve_to
+    from .progress import ProgressBar
+
+    config = _config(args)
+    out = Path(args.out)
+    bar = ProgressBar(config.tol, force=args.progress)
+    stop = _Interrupt()
+    previous = signal.signal(signal.SIGINT, stop)
+
+    def on_progress(solver):
+        bar.update(solver.residual(), solver.stats.rays, solver.elapsed(), solver.eta())
+
+    try:
+        with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
+            path = resolve_scene(args.scene, out / "scene" if not Path(args.scene).exists() else Path(tmp))
+            report = solve_to(path, out, config, patch_size=args.patch_size, scale=args.scale,
+                              on_progress=on_progress, should_stop=stop.should_stop,
+                              width=args.width, height=args.height)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    bar.update(report["residual"], report["stats"]["rays"], report["stats"]["wall_seconds"], 0.0, final=True)
+    st = report["stats"]
+    print(
+        f"dcrad: {report['scene']['patches']} patches, {st['rays']:,} rays, {st['shots']:,} shots in "
+        f"{st['wall_seconds']:.2f} s ({report['rays_per_second'] / 1e6:.2f} Mrays/s); residual "
+        f"{report['residual']:.2e}, stopped by {st['stopped_by']}; ledger closure {report['ledger']['closure']:.1e}"
+    )
+    print(f"dcrad: wrote {', '.join(report['outputs'].values())}, report.json in {out}")
+    return 0
+
+
+def cmd_scenes(args) -> int:
+    import scenes
+
+    if args.name:
+        path = scenes.write_builtin(args.name, Path(args.out))
+        print(path)
+        return 0
+    for name in scenes.names():
+        print(f"{name:10s} {scenes.describe(name)}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="dcrad", description="Divide-and-conquer radiosity.")
+    ap.add_argument("-v", "--verbose", action="store_true", help="log more")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("solve", help="solve a scene and write radiosity, meshes, previews and a report")
+    p.add_argument("scene", help="an .obj/.gltf/.glb file, or a built-in scene: office, cornell, furnace "
+                                 "(parameters as office:rows=3,cols=4,seed=2)")
+    p.add_argument("--out", default="out", help="output folder (default ./out)")
+    p.add_argument("--width", type=int, default=640, help="preview width in pixels")
+    p.add_argument("--height", type=int, default=480, help="preview height in pixels")
+    p.add_argument("--progress", action="store_true", help="draw the progress bar even when stderr is not a terminal")
+    _solver_args(p)
+    p.set_defaults(func=cmd_solve)
+
+    p = sub.add_parser("scenes", help="list built-in scenes, or write one as OBJ/MTL")
+    p.add_argument("name", nargs="?", help="built-in scene to write")
+    p.add_argument("--out", default=".", help="folder to write it into")
+    p.set_defaults(func=cmd_scenes)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="dcrad: %(levelname)s: %(message)s")
+    try:
+        return args.func(args)
+    except DcradError as exc:
+        print(f"dcrad: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("dcrad: aborted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,138 @@
+"""One solve from scene file to output folder, without networking.
+
+``prepare`` loads and meshes a scene; ``solve_to`` runs the solver and writes
+every output (radiosity.npz, patches.ply, scene.glb, preview images,
+report.json).  The CLI and the services call these; they hold no numerics.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .config import SolverConfig
+from .errors import SceneError
+from .patches import Patches
+from .report import run_report, write_json
+from .solve import Solver
+
+__all__ = ["default_patch_size", "prepare", "write_outputs", "solve_to", "resolve_scene"]
+
+log = logging.getLogger("dcrad")
+
+
+def default_patch_size(scene) -> float:
+    """Automatic maximum patch edge (m): 1/40 of the scene's box diagonal."""
+    used = scene.vertices[np.unique(scene.faces[scene.valid])]
+    diag = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
+    return diag / 40.0
+
+
+def resolve_scene(spec: str, workdir: Path) -> Path:
+    """A scene path, or a built-in scene name with optional parameters.
+
+    ``office``, ``cornell``, ``furnace`` or ``office:rows=3,cols=4,seed=2`` write the
+    generated OBJ/MTL into ``workdir`` and return its path.
+    """
+    import scenes
+
+    name, _, params = spec.partition(":")
+    if Path(spec).exists() or name not in scenes.names():
+        return Path(spec)
+    kwargs = {}
+    for item in filter(None, params.split(",")):
+        key, _, value = item.partition("=")
+        try:
+            kwargs[key.strip()] = int(value) if value.strip().lstrip("-").isdigit() else float(value)
+        except ValueError:
+            raise SceneError(f"built-in scene '{name}': parameter '{item}' is not key=number") from None
+    try:
+        return scenes.write_builtin(name, workdir, **kwargs)
+    except TypeError as exc:
+        raise SceneError(f"built-in scene '{name}': {exc}") from None
+
+
+def prepare(path, patch_size: float | None = None, scale: float = 1.0):
+    """Load, validate and mesh a scene: returns (scene, patches, patch_size used)."""
+    from .scene import load_scene
+
+    scene = load_scene(path, scale=scale)
+    size = patch_size if patch_size and patch_size > 0 else default_patch_size(scene)
+    return scene, scene.patches(size), size
+
+
+def _is_floor_plan(patches: Patches) -> bool:
+    """A multi-room floor: much wider than it is tall (Y up)."""
+    ext = patches.bounds[1] - patches.bounds[0]
+    return max(ext[0], ext[2]) > 2.5 * max(ext[1], 1e-12)
+
+
+def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: int = 480) -> dict:
+    """Write every output file; return {name: relative path} of what was written."""
+    from . import export, render
+
+    out.mkdir(parents=True, exist_ok=True)
+    written = {}
+    corners = render.corner_radiosity(patches)
+    export.write_radiosity_npz(out / "radiosity.npz", patches, len(scene.faces), {"valid_input": scene.valid})
+    written["radiosity"] = "radiosity.npz"
+    export.write_patches_ply(out / "patches.ply", patches)
+    written["patches"] = "patches.ply"
+    export.write_glb(out / "scene.glb", patches, corners)
+    written["mesh"] = "scene.glb"
+
+    camera = render.camera_from_dict(scene.camera, width, height) if scene.camera else render.auto_camera(patches, width, height)
+    img = render.render(patches, camera, corner_values=corners)
+    export.write_png(out / "preview.png", render.tonemap(img))
+    export.write_exr(out / "preview.exr", img)
+    written["preview_png"] = "preview.png"
+    written["preview_exr"] = "preview.exr"
+    if _is_floor_plan(patches):
+        top = render.topdown_camera(patches, width, height)
+        img = render.render(patches, top, mask=render.cutaway_mask(patches), corner_values=corners)
+        export.write_png(out / "preview_top.png", render.tonemap(img))
+        export.write_exr(out / "preview_top.exr", img)
+        written["preview_top_png"] = "preview_top.png"
+        written["preview_top_exr"] = "preview_top.exr"
+    return written
+
+
+def solve_to(
+    path,
+    out: Path,
+    config: SolverConfig | None = None,
+    patch_size: float | None = None,
+    scale: float = 1.0,
+    on_progress=None,
+    should_stop=None,
+    width: int = 640,
+    height: int = 480,
+) -> dict:
+    """Load, solve and write everything to ``out``; return the report dict."""
+    config = config or SolverConfig()
+    out = Path(out)
+    t0 = time.perf_counter()
+    scene, patches, size = prepare(path, patch_size, scale)
+    t_load = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    solver = Solver(patches, config)
+    t_build = time.perf_counter() - t0
+    solver.run(on_progress=on_progress, should_stop=should_stop)
+
+    t0 = time.perf_counter()
+    warnings = list(scene.warnings) + solver.warnings()
+    outputs = write_outputs(out, scene, patches, width, height)
+    t_out = time.perf_counter() - t0
+
+    settings = config.as_dict() | {"patch_size_m": size, "scale": scale}
+    timings = {"load_and_mesh_s": t_load, "embree_build_s": t_build,
+               "solve_s": solver.stats.wall_seconds, "outputs_s": t_out}
+    report = run_report(scene, solver, settings, timings, warnings, outputs)
+    write_json(out / "report.json", report)
+    for w in warnings:
+        log.warning(w)
+    return report
