@@ -1,0 +1,284 @@
+"""Tests for the built-in scene generators in the ``scenes`` package."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from trimesh.exchange.obj import parse_mtl
+
+import scenes
+from scenes.cornell import cornell_box
+from scenes.furnace import furnace_box, furnace_expected
+from scenes.office import office_floor, room_rect
+from scenes.objwriter import ObjWriter
+
+UP = np.array([0.0, 1.0, 0.0])
+
+
+# -- helpers -------------------------------------------------------------------------
+def read_obj(path):
+    """Tiny OBJ reader: {object name: (material, (n, 3, 3) triangles)} in file order."""
+    verts, objs, name, mat, libs = [], {}, None, None, []
+    for line in path.read_text().splitlines():
+        parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        if parts[0] == "mtllib":
+            libs.append(parts[1])
+        elif parts[0] == "v":
+            verts.append([float(x) for x in parts[1:4]])
+        elif parts[0] == "o":
+            name = parts[1]
+            assert name not in objs, f"duplicate object {name}"
+            objs[name] = [None, []]
+        elif parts[0] == "usemtl":
+            objs[name][0] = parts[1]
+        elif parts[0] == "f":
+            assert len(parts) == 4, "triangles only"
+            assert name is not None and objs[name][0] is not None, "face before o/usemtl"
+            objs[name][1].append([int(k) - 1 for k in parts[1:]])
+    assert libs == [path.stem + ".mtl"]
+    v = np.array(verts)
+    return {k: (m, v[np.array(f, dtype=np.int64)]) for k, (m, f) in objs.items()}
+
+
+def normals(tri):
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def all_tris(objs):
+    return np.concatenate([t for _, t in objs.values()])
+
+
+def load_mtl(path):
+    mats = parse_mtl(path.with_suffix(".mtl").read_text())
+    for name, m in mats.items():
+        kd = np.asarray(m["kd"], float)
+        assert kd.shape == (3,) and np.all(kd >= 0) and np.all(kd < 1), (name, kd)
+    return mats
+
+
+def ke(mat):
+    return np.array([float(x) for x in mat["ke"]]) if "ke" in mat else np.zeros(3)
+
+
+def common_checks(path):
+    """Geometry sanity shared by every scene; returns (objects, materials)."""
+    objs = read_obj(path)
+    mats = load_mtl(path)
+    tri = all_tris(objs)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    assert area.min() > 1e-6, "degenerate triangle"
+    unique = {tuple(sorted(map(tuple, t))) for t in np.round(tri, 6).tolist()}
+    assert len(unique) == len(tri), "duplicate triangle"
+    mesh = trimesh.load(path, force="mesh")
+    assert len(mesh.faces) == len(tri)
+    assert not np.any(mesh.area_faces <= 1e-9)
+    assert {m for m, _ in objs.values()} <= set(mats)
+    for name, (m, t) in objs.items():
+        if name.startswith("light"):
+            assert np.all(ke(mats[m]) > 0), name
+            assert np.allclose(normals(t), -UP), f"{name} must face down"
+        else:
+            assert np.all(ke(mats[m]) == 0), name
+    return objs, mats
+
+
+def first_hits(tri, origins, dirs, eps=1e-9):
+    """Brute-force Moeller-Trumbore: (t, face index) of the nearest hit, inf/-1 if none."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    p = np.cross(dirs[:, None, :], e2[None])
+    det = np.einsum("tj,rtj->rt", e1, p)
+    det = np.where(np.abs(det) < 1e-14, np.nan, det)
+    s = origins[:, None, :] - tri[None, :, 0]
+    u = np.einsum("rtj,rtj->rt", s, p) / det
+    q = np.cross(s, e1[None])
+    v = np.einsum("rj,rtj->rt", dirs, q) / det
+    t = np.einsum("tj,rtj->rt", e2, q) / det
+    ok = (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (t > 1e-7)
+    t = np.where(ok, t, np.inf)
+    idx = np.argmin(t, axis=1)
+    best = t[np.arange(len(t)), idx]
+    return best, np.where(np.isfinite(best), idx, -1)
+
+
+# -- registry ------------------------------------------------------------------------
+def test_registry(tmp_path):
+    assert scenes.names() == ["cornell", "furnace", "office"]
+    for name in scenes.names():
+        assert scenes.describe(name)
+        path = scenes.write_builtin(name, tmp_path / "sub")
+        assert path == tmp_path / "sub" / f"{name}.obj" and path.with_suffix(".mtl").exists()
+    with pytest.raises(ValueError, match="cornell, furnace, office"):
+        scenes.write_builtin("nope", tmp_path)
+    with pytest.raises(ValueError):
+        scenes.describe("nope")
+
+
+def test_writer_rejects_bad_input():
+    w = ObjWriter()
+    with pytest.raises(ValueError):
+        w.material("bad", 1.0)
+    w.material("m", 0.5)
+    w.begin("a", "m")
+    with pytest.raises(ValueError):
+        w.add_tri((0, 0, 0), (1, 0, 0), (2, 0, 0))
+    with pytest.raises(ValueError):
+        w.begin("a", "m")
+    w.add_box((0, 0, 0), (1, 2, 3), outward=False, skip_faces=("top",))
+    assert w.triangle_count == 10
+
+
+# -- Cornell box ---------------------------------------------------------------------
+def test_cornell(tmp_path):
+    path = cornell_box(tmp_path, light_exitance=(40, 30, 20))
+    objs, mats = common_checks(path)
+    assert set(objs) == {"floor", "ceiling", "back_wall", "left_wall", "right_wall",
+                         "short_block", "tall_block", "light"}
+    centre = np.array([0.278, 0.274, 0.280])
+    for name in ("floor", "ceiling", "back_wall", "left_wall", "right_wall"):
+        t = objs[name][1]
+        assert np.all(np.einsum("ij,ij->i", normals(t), centre - t.mean(axis=1)) > 0), name
+    assert np.all(normals(objs["floor"][1])[:, 1] > 0.999)
+    assert np.all(normals(objs["ceiling"][1])[:, 1] < -0.999)
+    for name in ("short_block", "tall_block"):
+        t = objs[name][1]
+        assert len(t) == 10  # top + 4 sides, no bottom
+        mid = t.reshape(-1, 3).mean(axis=0)
+        assert np.all(np.einsum("ij,ij->i", normals(t), t.mean(axis=1) - mid) > 0), name
+    light = objs["light"][1]
+    assert np.allclose(light[..., 1], 0.5478) and np.all(light[..., 1] < 0.5488)
+    assert np.allclose(ke(mats[objs["light"][0]]), (40, 30, 20))
+    assert np.allclose(mats[objs["light"][0]]["kd"], 0.78)
+    assert np.allclose(mats[objs["left_wall"][0]]["kd"], (0.63, 0.065, 0.05))
+    assert np.allclose(mats[objs["right_wall"][0]]["kd"], (0.14, 0.45, 0.09))
+    # open front: nothing at z = 0 except the floor/ceiling/wall edges
+    tri = all_tris(objs)
+    assert not np.any(np.all(np.abs(tri[..., 2]) < 1e-9, axis=1))
+
+
+# -- furnace -------------------------------------------------------------------------
+@pytest.mark.parametrize("lf,size", [(0.2, 1.0), (0.5, 2.5), (1.0, 1.0)])
+def test_furnace(tmp_path, lf, size):
+    path = furnace_box(tmp_path, rho=0.6, size=size, emission=2.0, light_fraction=lf)
+    objs, mats = common_checks(path)
+    mesh = trimesh.load(path, force="mesh")
+    mesh.merge_vertices()
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert mesh.volume < 0 and math.isclose(-mesh.volume, size**3, rel_tol=1e-9)
+    tri = all_tris(objs)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    lt = objs["light"][1]
+    light_area = 0.5 * np.linalg.norm(np.cross(lt[:, 1] - lt[:, 0], lt[:, 2] - lt[:, 0]), axis=1).sum()
+    exp = furnace_expected(rho=0.6, size=size, emission=2.0, light_fraction=lf)
+    assert math.isclose(area.sum(), exp["total_area"], rel_tol=1e-9)
+    assert math.isclose(light_area, exp["light_area"], rel_tol=1e-9)
+    assert math.isclose(exp["emitted_power"], 2.0 * lf * size**2)
+    assert math.isclose(exp["mean_b_minus_e"], 0.6 * exp["emitted_power"] / (0.4 * 6 * size**2))
+    for m in mats.values():
+        assert np.allclose(m["kd"], 0.6)
+    assert np.allclose(ke(mats[objs["light"][0]]), 2.0)
+
+
+def test_furnace_rgb(tmp_path):
+    path = furnace_box(tmp_path, rho=(0.2, 0.5, 0.8), emission=(1, 2, 3), grey=False)
+    objs, mats = common_checks(path)
+    assert np.allclose(mats[objs["floor"][0]]["kd"], (0.2, 0.5, 0.8))
+    exp = furnace_expected(rho=(0.2, 0.5, 0.8), emission=(1, 2, 3))
+    assert np.allclose(exp["mean_b_minus_e"], np.array([0.2, 0.5, 0.8]) * [1, 2, 3] * 0.2 / ((1 - np.array([0.2, 0.5, 0.8])) * 6))
+    with pytest.raises(ValueError):
+        furnace_box(tmp_path, rho=(0.2, 0.5, 0.8))
+    with pytest.raises(ValueError):
+        furnace_box(tmp_path, rho=1.0)
+
+
+# -- office --------------------------------------------------------------------------
+def furniture_boxes(objs):
+    out = []
+    for name, (_, t) in objs.items():
+        if name.startswith(("desk_", "cabinet_")):
+            pts = t.reshape(-1, 3)
+            out.append((pts.min(axis=0), pts.max(axis=0)))
+    return out
+
+
+@pytest.mark.parametrize("rows,cols,seed", [(2, 3, 0), (3, 2, 7), (1, 1, 1)])
+def test_office_closed(tmp_path, rows, cols, seed):
+    path = office_floor(tmp_path, rows=rows, cols=cols, seed=seed)
+    objs, mats = common_checks(path)
+    tri = all_tris(objs)
+    if (rows, cols) == (2, 3):
+        assert 200 <= len(tri) <= 500
+    n_walls = rows * (cols - 1) + (rows - 1) * cols
+    assert sum(n.startswith("lintel_") for n in objs) == n_walls
+    n_lit = max(1, math.ceil(0.5 * rows * cols))
+    assert len({n.rsplit("_", 1)[0] for n in objs if n.startswith("light_")}) == n_lit
+    boxes = furniture_boxes(objs)
+    assert len(boxes) >= rows * cols
+    for name, (_, t) in objs.items():
+        if name.startswith(("desk_", "cabinet_")):
+            assert len(t) == 10 and np.min(t[..., 1]) == 0.0  # on the floor, no bottom
+            mid = t.reshape(-1, 3).mean(axis=0)
+            assert np.all(np.einsum("ij,ij->i", normals(t), t.mean(axis=1) - mid) > 0), name
+    # reflectances
+    for name, (m, _) in objs.items():
+        kd = np.asarray(mats[m]["kd"])
+        if name.startswith(("desk_", "cabinet_")):
+            assert np.all((kd >= 0.2) & (kd <= 0.6)), name
+    # closedness: random rays from inside rooms all hit a front face
+    rng = np.random.default_rng(123)
+    n = 3000
+    rooms = np.array([room_rect(i, j) for i in range(rows) for j in range(cols)])
+    r = rooms[rng.integers(len(rooms), size=4 * n)]
+    pts = np.column_stack([
+        rng.uniform(r[:, 0] + 0.02, r[:, 2] - 0.02),
+        rng.uniform(0.02, 2.8 - 0.05, 4 * n),
+        rng.uniform(r[:, 1] + 0.02, r[:, 3] - 0.02),
+    ])
+    inside = np.zeros(len(pts), bool)
+    for lo, hi in boxes:
+        inside |= np.all((pts > lo - 0.01) & (pts < hi + 0.01), axis=1)
+    pts = pts[~inside][:n]
+    assert len(pts) == n
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for k in range(0, n, 500):
+        t, idx = first_hits(tri, pts[k:k + 500], d[k:k + 500])
+        assert np.all(idx >= 0), "ray escaped the office"
+        assert np.all(np.einsum("ij,ij->i", d[k:k + 500], normals(tri[idx])) < 0), "hit a back face"
+    # every door is open: a horizontal ray through each opening crosses the wall
+    for name, (_, t) in objs.items():
+        if name.startswith("lintel_"):
+            lo, hi = t.reshape(-1, 3).min(axis=0), t.reshape(-1, 3).max(axis=0)
+            assert math.isclose(lo[1], 2.1) and math.isclose(hi[1], 2.8)
+            axis = 2 if name.startswith("lintel_h") else 0  # crossing direction
+            o = (lo + hi) / 2
+            o[1] = 1.0
+            o[axis] = lo[axis] - 0.5
+            dirn = np.zeros(3)
+            dirn[axis] = 1.0
+            dist, _ = first_hits(tri, o[None], dirn[None])
+            assert dist[0] > 0.5 + 0.12 + 0.9, name
+
+
+def test_office_lit_fraction_and_validation(tmp_path):
+    objs = read_obj(office_floor(tmp_path, lit_fraction=0.0))
+    assert len({n.rsplit("_", 1)[0] for n in objs if n.startswith("light_")}) == 1
+    objs = read_obj(office_floor(tmp_path, lit_fraction=1.0))
+    assert len({n.rsplit("_", 1)[0] for n in objs if n.startswith("light_")}) == 6
+    with pytest.raises(ValueError):
+        office_floor(tmp_path, door_height=3.0)
+
+
+def test_office_determinism(tmp_path):
+    a = office_floor(tmp_path / "a", seed=5)
+    b = office_floor(tmp_path / "b", seed=5)
+    c = office_floor(tmp_path / "c", seed=6)
+    assert a.read_bytes() == b.read_bytes()
+    assert a.with_suffix(".mtl").read_bytes() == b.with_suffix(".mtl").read_bytes()
+    assert a.read_bytes() != c.read_bytes()
+    assert cornell_box(tmp_path / "d").read_bytes() == cornell_box(tmp_path / "e").read_bytes()
