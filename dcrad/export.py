@@ -1,0 +1,251 @@
+"""File writers: images through OpenImageIO, meshes through trimesh, arrays as npz.
+
+Every writer creates missing parent directories and raises ``OSError`` naming
+the path when the file cannot be written.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SolveError
+
+__all__ = ["write_png", "write_exr", "write_patches_ply", "write_glb", "write_radiosity_npz"]
+
+#: names write_radiosity_npz uses itself; ``extra`` may not reuse them
+NPZ_KEYS = (
+    "B",
+    "valid",
+    "patch_B",
+    "patch_unshot",
+    "patch_area",
+    "patch_source",
+    "patch_rho",
+    "patch_emission",
+)
+
+
+def _prepare(path) -> str:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return str(p)
+
+
+def _write_image(path, pixels: np.ndarray, fmt, attrs: dict) -> None:
+    import OpenImageIO as oiio
+
+    path = _prepare(path)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    if pixels.ndim != 3 or pixels.shape[2] not in (1, 3, 4):
+        raise ValueError(f"{path}: image must be (H, W, 1|3|4), got {pixels.shape}")
+    h, w, c = pixels.shape
+    out = oiio.ImageOutput.create(path)
+    if out is None:
+        raise OSError(f"{path}: no OpenImageIO writer: {oiio.geterror()}")
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    for k, v in attrs.items():
+        spec.attribute(k, v)
+    try:
+        if not out.open(path, spec):
+            raise OSError(f"{path}: cannot open for writing: {out.geterror()}")
+        if not out.write_image(np.ascontiguousarray(pixels)):
+            raise OSError(f"{path}: write failed: {out.geterror()}")
+    finally:
+        out.close()
+
+
+def write_png(path, img_uint8: np.ndarray) -> None:
+    """img_uint8 : (H, W, 3|4) uint8, already sRGB-encoded (see render.tonemap)."""
+    import OpenImageIO as oiio
+
+    img = np.asarray(img_uint8)
+    if img.dtype != np.uint8:
+        raise ValueError(f"{path}: write_png wants uint8, got {img.dtype}")
+    _write_image(path, img, oiio.UINT8, {"oiio:ColorSpace": "sRGB"})
+
+
+def write_exr(path, img_float32: np.ndarray, half: bool = True) -> None:
+    """img_float32 : (H, W, 3|4) linear float; stored as half (default) or float, zip."""
+    import OpenImageIO as oiio
+
+    img = np.asarray(img_float32, np.float32)
+    if not np.all(np.isfinite(img)):
+        raise ValueError(f"{path}: image holds non-finite values")
+    fmt = oiio.HALF if half else oiio.FLOAT
+    _write_image(path, img, fmt, {"compression": "zip", "oiio:ColorSpace": "lin_rec709"})
+
+
+# ---------------------------------------------------------------------------------
+def write_patches_ply(path, patches, dtype=np.float32) -> None:
+    """Binary little-endian PLY of the patch mesh, one face per patch, in order.
+
+    Face properties: ``radiosity_r``, ``radiosity_g``, ``radiosity_b`` (``dtype``,
+    W/m^2), ``source`` and ``obj`` (int32).  Written by trimesh with
+    ``process=False`` so nothing is merged or reordered.  trimesh stores the
+    vertices as float32.  Read back with ``trimesh.load(path, process=False)``;
+    the face properties are in ``mesh.metadata['_ply_raw']['face']['data']``.
+    """
+    import trimesh
+
+    path = _prepare(path)
+    b = np.asarray(patches.radiosity, np.float64)
+    attrs = {
+        "radiosity_r": b[:, 0].astype(dtype),
+        "radiosity_g": b[:, 1].astype(dtype),
+        "radiosity_b": b[:, 2].astype(dtype),
+        "source": patches.source.astype(np.int32),
+        "obj": patches.obj.astype(np.int32),
+    }
+    mesh = trimesh.Trimesh(
+        vertices=patches.vertices,
+        faces=patches.faces,
+        face_attributes=attrs,
+        process=False,
+        validate=False,
+    )
+    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True)
+    with open(path, "wb") as fh:
+        fh.write(data)
+
+
+def _unlit_material(tree: dict) -> None:
+    """glTF tree post-processor: one unlit, single-sided, white material for all."""
+    tree["materials"] = [
+        {
+            "name": "radiosity",
+            "pbrMetallicRoughness": {
+                "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                "metallicFactor": 0.0,
+                "roughnessFactor": 1.0,
+            },
+            "doubleSided": False,
+            "extensions": {"KHR_materials_unlit": {}},
+        }
+    ]
+    used = tree.setdefault("extensionsUsed", [])
+    if "KHR_materials_unlit" not in used:
+        used.append("KHR_materials_unlit")
+    for mesh in tree.get("meshes", []):
+        for prim in mesh.get("primitives", []):
+            prim["material"] = 0
+
+
+def write_glb(
+    path, patches, corner_values: np.ndarray, srgb: bool = False, exposure=None, unlit: bool = True
+):
+    """Binary glTF with baked colours: 3 unshared vertices per patch, COLOR_0 RGBA uint8.
+
+    corner_values : (n, 3, 3) radiosity per corner (render.corner_radiosity).
+    Colours are ``tonemap(corner_values / pi)`` (same exposure rule as the
+    images).  The glTF spec defines COLOR_0 as *linear*, so by default the
+    values are not sRGB-encoded (viewers encode on display); ``srgb=True``
+    stores sRGB-encoded bytes instead.  With ``unlit`` (default) the material
+    is unlit (KHR_materials_unlit, white base colour) and single-sided, so
+    viewers neither shade the baked light again nor show walls from behind;
+    trimesh then re-imports the colours as ``visual.vertex_attributes['color']``
+    (with ``unlit=False``, no material: as ``visual.vertex_colors``).
+
+    returns the exposure used (float)
+    """
+    import trimesh
+
+    from .render import luminance, tonemap
+
+    path = _prepare(path)
+    n = len(patches)
+    lin = np.asarray(corner_values, np.float64).reshape(n * 3, 3) / math.pi
+    if exposure is None:
+        lum = luminance(lin)
+        lum = lum[lum > 0]
+        ref = float(np.percentile(lum, 99.0)) if lum.size else 0.0
+        exposure = 0.9 / ref if ref > 0 else 1.0
+    rgba = np.full((n * 3, 4), 255, np.uint8)
+    rgba[:, :3] = tonemap(lin, exposure=exposure, srgb=srgb)
+    mesh = trimesh.Trimesh(
+        vertices=patches.triangles.reshape(-1, 3),
+        faces=np.arange(3 * n, dtype=np.int64).reshape(n, 3),
+        vertex_colors=rgba,
+        process=False,
+        validate=False,
+    )
+    data = trimesh.exchange.gltf.export_glb(
+        trimesh.Scene(mesh), include_normals=False, tree_postprocessor=_unlit_material if unlit else None
+    )
+    with open(path, "wb") as fh:
+        fh.write(data)
+    return float(exposure)
+
+
+# ---------------------------------------------------------------------------------
+def input_triangle_radiosity(patches, n_input_triangles: int):
+    """Area-weighted mean B of the patches of each input triangle.
+
+    returns (B (T, 3) float64, valid (T,) bool); triangles without patches get 0
+    and valid False; triangles whose patches all have zero area get their plain mean.
+    """
+    T = int(n_input_triangles)
+    src = patches.source
+    if len(src) and (src.min() < 0 or src.max() >= T):
+        raise SolveError(
+            f"patch source indices span [{src.min()}, {src.max()}], outside [0, {T})"
+        )
+    area = patches.area
+    b = np.asarray(patches.radiosity, np.float64)
+    count = np.bincount(src, minlength=T)
+    den = np.bincount(src, weights=area, minlength=T)
+    plain = den <= 0
+    w = np.where(plain[src], 1.0, area)  # zero-area groups: plain mean
+    den = np.bincount(src, weights=w, minlength=T)
+    out = np.zeros((T, 3))
+    valid = count > 0
+    for c in range(3):
+        num = np.bincount(src, weights=w * b[:, c], minlength=T)
+        out[valid, c] = num[valid] / den[valid]
+    return out, valid
+
+
+def write_radiosity_npz(path, patches, n_input_triangles: int, extra: dict | None = None):
+    """Compressed npz of the solution.
+
+    ==============  ========  ======================================================
+    key             dtype     meaning
+    ==============  ========  ======================================================
+    B               (T,3) f8  per input triangle: area-weighted mean of its patches
+    valid           (T,) ?    False for input triangles without patches (B = 0)
+    patch_B         (n,3) f8  radiosity per patch (W/m^2)
+    patch_unshot    (n,3) f8  unshot radiosity per patch (W/m^2)
+    patch_area      (n,) f8   m^2
+    patch_source    (n,) i8   input triangle of each patch
+    patch_rho       (n,3) f8  reflectance
+    patch_emission  (n,3) f8  emitted exitance (W/m^2)
+    ==============  ========  ======================================================
+
+    plus every item of ``extra`` (``np.asarray`` of each value).  Raises
+    SolveError if any floating array is not finite, ValueError if an ``extra``
+    key collides with the names above.
+    """
+    b, valid = input_triangle_radiosity(patches, n_input_triangles)
+    arrays = {
+        "B": b,
+        "valid": valid,
+        "patch_B": np.asarray(patches.radiosity, np.float64),
+        "patch_unshot": np.asarray(patches.unshot, np.float64),
+        "patch_area": patches.area,
+        "patch_source": patches.source,
+        "patch_rho": patches.rho,
+        "patch_emission": patches.emission,
+    }
+    for k, v in (extra or {}).items():
+        if k in arrays:
+            raise ValueError(f"{path}: extra key {k!r} collides with a standard key")
+        arrays[k] = np.asarray(v)
+    for k, v in arrays.items():
+        if v.dtype.kind in "fc" and not np.all(np.isfinite(v)):
+            raise SolveError(f"{path}: array {k!r} holds non-finite values")
+    path = _prepare(path)
+    with open(path, "wb") as fh:  # a file object keeps the exact name (no .npz added)
+        np.savez_compressed(fh, **arrays)

@@ -1,0 +1,409 @@
+"""Pictures of a solved patch table: cameras, smooth radiosity, ray-cast images.
+
+Numerics only; files are written by :mod:`dcrad.export`.  Conventions: Y is
+up, lengths in metres, B in W/m^2.  :func:`render` returns *radiance*
+``L = B / pi`` (W m^-2 sr^-1, the radiance of a Lambertian surface of
+radiosity B), linear, float32.  Every primary ray goes through
+:class:`dcrad.rays.Tracer`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ConfigError
+from .rays import MISS, Tracer
+
+__all__ = [
+    "Camera",
+    "BACKFACE_COLOR",
+    "corner_radiosity",
+    "auto_camera",
+    "camera_from_dict",
+    "topdown_camera",
+    "cutaway_mask",
+    "render",
+    "tonemap",
+    "luminance",
+]
+
+#: back-face flag colour, as a fraction of the image's reference radiance
+#: (99th percentile of front-face luminance) when ``render(backface_color=None)``
+BACKFACE_COLOR = (0.1, 0.0, 0.1)
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(n > 0, n, 1.0)
+
+
+def _vec3(x) -> tuple:
+    a = np.asarray(x, np.float64).reshape(3)
+    if not np.all(np.isfinite(a)):
+        raise ConfigError(f"camera vector {a} is not finite")
+    return tuple(float(c) for c in a)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole (or orthographic) camera.
+
+    eye, target, up : 3 floats (stored as tuples; ``np.asarray`` them freely)
+    fov_y           : vertical field of view in degrees (perspective only)
+    width, height   : image size in pixels; row 0 is the top of the image
+    orthographic_height : if set, an orthographic view this many metres tall
+    """
+
+    eye: tuple
+    target: tuple
+    up: tuple = (0.0, 1.0, 0.0)
+    fov_y: float = 45.0
+    width: int = 640
+    height: int = 480
+    orthographic_height: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("eye", "target", "up"):
+            object.__setattr__(self, name, _vec3(getattr(self, name)))
+        if int(self.width) < 1 or int(self.height) < 1:
+            raise ConfigError(f"image size {self.width}x{self.height} must be positive")
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        if self.orthographic_height is None and not 0.0 < self.fov_y < 180.0:
+            raise ConfigError(f"fov_y {self.fov_y} must be in (0, 180) degrees")
+        if self.orthographic_height is not None and not self.orthographic_height > 0:
+            raise ConfigError(f"orthographic_height {self.orthographic_height} must be > 0")
+        f = np.subtract(self.target, self.eye)
+        if not np.linalg.norm(f) > 0:
+            raise ConfigError("camera eye and target coincide")
+        if np.linalg.norm(np.cross(_unit(f), _unit(np.asarray(self.up)))) < 1e-6:
+            raise ConfigError("camera up is parallel to the view direction")
+
+    def basis(self):
+        """(forward, right, up) as (3,) float64 unit vectors, right-handed."""
+        fwd = _unit(np.subtract(self.target, self.eye))
+        right = _unit(np.cross(fwd, self.up))
+        return fwd, right, np.cross(right, fwd)
+
+    def rays(self):
+        """Primary rays through pixel centres, row-major from the top-left pixel.
+
+        returns (origins (H*W, 3) float64, dirs (H*W, 3) float64 unit)
+        """
+        w, h = self.width, self.height
+        fwd, right, up = self.basis()
+        x = (np.arange(w) + 0.5) / w * 2.0 - 1.0  # -1 .. 1 left to right
+        y = 1.0 - (np.arange(h) + 0.5) / h * 2.0  # 1 .. -1 top to bottom
+        xx, yy = np.meshgrid(x, y)
+        xx, yy = xx.reshape(-1, 1), yy.reshape(-1, 1)
+        eye = np.asarray(self.eye)
+        if self.orthographic_height is not None:
+            half_h = 0.5 * self.orthographic_height
+            half_w = half_h * w / h
+            origins = eye + xx * half_w * right + yy * half_h * up
+            dirs = np.broadcast_to(fwd, origins.shape).copy()
+            return origins, dirs
+        half_h = math.tan(math.radians(self.fov_y) / 2.0)
+        half_w = half_h * w / h
+        dirs = _unit(fwd + xx * half_w * right + yy * half_h * up)
+        return np.broadcast_to(eye, dirs.shape).copy(), dirs
+
+
+# ---------------------------------------------------------------------------------
+def _position_groups(points: np.ndarray, tol: float):
+    """Group points by position on a grid of cell size ``tol``.
+
+    returns (order (m,) int64 sorting the points by group, group (m,) int64 id
+    per point, counts (G,) int64 points per group)
+    """
+    key = np.floor((points - points.min(axis=0)) / tol + 0.5).astype(np.int64)
+    # dense rank per axis, then one int64 key when the ranks fit (they nearly always do)
+    ranks, sizes = [], []
+    for ax in range(3):
+        u, r = np.unique(key[:, ax], return_inverse=True)
+        ranks.append(r.reshape(-1).astype(np.int64))
+        sizes.append(len(u))
+    if float(sizes[0]) * sizes[1] * sizes[2] < 2.0**62:
+        lin = (ranks[0] * sizes[1] + ranks[1]) * sizes[2] + ranks[2]
+        order = np.argsort(lin, kind="stable")
+        srt = lin[order]
+        new = np.concatenate([[True], srt[1:] != srt[:-1]])
+    else:  # pragma: no cover - needs > 2^62 distinct coordinate triples
+        order = np.lexsort((ranks[2], ranks[1], ranks[0]))
+        srt = np.stack([r[order] for r in ranks], axis=1)
+        new = np.concatenate([[True], np.any(srt[1:] != srt[:-1], axis=1)])
+    gid = np.cumsum(new) - 1
+    group = np.empty(len(points), np.int64)
+    group[order] = gid
+    return order, group, np.bincount(gid)
+
+
+def corner_radiosity(
+    patches,
+    crease_angle_deg: float = 30.0,
+    values: np.ndarray | None = None,
+    merge_tol: float = 1e-7,
+    max_pairs: int = 1 << 22,
+) -> np.ndarray:
+    """Smooth per-corner radiosity that does not bleed across creases.
+
+    The value at corner k of patch p is the area-weighted mean of ``values``
+    (default ``patches.radiosity``) over every patch q having a corner at the
+    same position (within ``merge_tol * patches.scale``, so duplicated vertices
+    merge) whose normal is within ``crease_angle_deg`` of p's normal.  Patches
+    facing away from each other (n_p . n_q <= 0, e.g. the two sides of a thin
+    wall) never mix, whatever the angle.  Patches with no valid neighbour
+    (degenerate) keep their own value.  Cost: sum over positions of
+    (corners there)^2 pairs, processed ``max_pairs`` at a time.
+
+    returns (n, 3 corners, C channels) float64, C = 3 for radiosity
+    """
+    vals = patches.radiosity if values is None else values
+    vals = np.asarray(vals, np.float64).reshape(len(patches), -1)
+    n, nch = vals.shape
+    out = np.repeat(vals[:, None, :], 3, axis=1)
+    if n == 0:
+        return out
+    corners = patches.triangles.reshape(-1, 3)
+    order, group, counts = _position_groups(corners, max(merge_tol * patches.scale, 1e-300))
+    m = len(corners)
+    starts = np.cumsum(counts) - counts
+    k = counts[group[order]]  # partners of each sorted corner (itself included)
+    first = starts[group[order]]  # sorted position of its group's first corner
+    ps = order // 3  # patch of each sorted corner
+    ns, area_s, vals_s = patches.normal[ps], patches.area[ps], vals[ps]
+    cos_t = math.cos(math.radians(min(max(crease_angle_deg, 0.0), 180.0))) - 1e-9
+    num = np.zeros((m, nch))
+    den = np.zeros(m)
+    # sorted corners in chunks of about max_pairs pairs (a handful of chunks)
+    ends = np.cumsum(k)
+    cuts = np.searchsorted(ends, np.arange(max_pairs, ends[-1], max_pairs), side="right")
+    bounds = np.unique(np.concatenate([[0], cuts, [m]]))
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        kk = k[lo:hi]
+        seg = np.cumsum(kk) - kk  # where each corner's run of pairs starts
+        b = np.arange(int(kk.sum())) + np.repeat(first[lo:hi] - seg, kk)  # partner
+        dot = np.einsum("ij,ij->i", np.repeat(ns[lo:hi], kk, axis=0), ns[b])
+        w = np.where((dot >= cos_t) & (dot > 0.0), area_s[b], 0.0)
+        den[lo:hi] = np.add.reduceat(w, seg)
+        num[lo:hi] = np.add.reduceat(w[:, None] * vals_s[b], seg, axis=0)
+    ok = den > 0
+    flat = out.reshape(m, nch)
+    sel = order[ok]
+    flat[sel] = num[ok] / den[ok, None]
+    return out
+
+
+# ---------------------------------------------------------------------------------
+def _openness(tracer: Tracer, lo: np.ndarray, hi: np.ndarray, axis: int, sign: float, k=9):
+    """Fraction of rays leaving the box centre region toward a side that escape."""
+    c = 0.5 * (lo + hi)
+    others = [i for i in range(3) if i != axis]
+    s = (np.arange(k) + 0.5) / k * 0.9 + 0.05
+    uu, vv = np.meshgrid(s, s)
+    o = np.tile(c, (k * k, 1))
+    o[:, others[0]] = lo[others[0]] + uu.ravel() * (hi - lo)[others[0]]
+    o[:, others[1]] = lo[others[1]] + vv.ravel() * (hi - lo)[others[1]]
+    d = np.zeros_like(o)
+    d[:, axis] = sign
+    prim, _ = tracer.intersect(o, d)
+    return float(np.mean(prim == MISS))
+
+
+def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
+    """A perspective view of the whole scene.
+
+    Rays are cast from a grid on the mid-plane of the bounding box toward each
+    of the four vertical sides (+-X, +-Z) and toward +Y; the fraction that
+    escapes is that side's openness.
+
+    * Some vertical side is mostly open (>= 50%; a Cornell box, or any scene
+      that is not a closed room): the eye stands outside the most open side on
+      the box's mid-height, looking at the centre, fov_y = 40 deg, far enough
+      back that the whole cross-section of the box fits the frame.  If the top
+      is open as well the eye is lifted 30 deg so the floor shows.
+    * Closed room: the eye is inside, near a top corner (80% of the height,
+      8% in from the two walls), looking at the diagonally opposite corner at
+      20% of the height, fov_y = 65 deg.  Of the four corners the one with the
+      clearest line of sight from the centre is used.
+    """
+    lo, hi = patches.bounds
+    ext = np.maximum(hi - lo, 1e-9 * patches.scale)
+    c = 0.5 * (lo + hi)
+    tracer = Tracer(patches.triangles)
+    sides = [(0, 1.0), (0, -1.0), (2, 1.0), (2, -1.0)]
+    open_ = [_openness(tracer, lo, hi, ax, sg) for ax, sg in sides]
+    best = int(np.argmax(open_))
+    aspect = width / height
+    if open_[best] >= 0.5:
+        ax, sg = sides[best]
+        across = ext[2 - ax]  # the horizontal extent seen across the image
+        fov = 40.0
+        half = max(0.5 * ext[1], 0.5 * across / aspect)
+        dist = 0.5 * ext[ax] + 1.05 * half / math.tan(math.radians(fov / 2))
+        d = np.zeros(3)
+        d[ax] = sg
+        if _openness(tracer, lo, hi, 1, 1.0) >= 0.5:
+            el = math.radians(30.0)
+            d = d * math.cos(el) + np.array([0.0, math.sin(el), 0.0])
+            dist += 0.5 * ext[1] * math.tan(el)  # step back: the box looks taller
+        return Camera(c + dist * d, c, (0, 1, 0), fov, width, height)
+    inset = 0.08 * ext
+    best_eye, best_t = None, -1.0
+    for sx in (-1.0, 1.0):
+        for sz in (-1.0, 1.0):
+            s = np.array([sx, 0.0, sz])
+            eye = np.where(s > 0, hi - inset, lo + inset)
+            eye[1] = lo[1] + 0.8 * ext[1]
+            _, t = tracer.intersect(c[None], (eye - c)[None])
+            if min(float(t[0]), 1.0) > best_t + 1e-9:
+                best_eye, best_t = eye, min(float(t[0]), 1.0)
+    target = lo + hi - best_eye
+    target[1] = lo[1] + 0.2 * ext[1]
+    return Camera(best_eye, target, (0, 1, 0), 65.0, width, height)
+
+
+def camera_from_dict(cam: dict, width: int = 640, height: int = 480) -> Camera:
+    """A Camera from a scene file's camera ``{"eye", "target", "up", "fov_y"}`` (glTF)."""
+    return Camera(
+        eye=cam["eye"], target=cam["target"], up=cam.get("up", (0.0, 1.0, 0.0)),
+        fov_y=float(cam.get("fov_y", 45.0)), width=width, height=height,
+    )
+
+
+def topdown_camera(patches, width: int = 640, height: int = 480) -> Camera:
+    """Orthographic view straight down -Y framing the box in X/Z (+X right, -Z up)."""
+    lo, hi = patches.bounds
+    ext = np.maximum(hi - lo, 1e-9 * patches.scale)
+    c = 0.5 * (lo + hi)
+    eye = np.array([c[0], hi[1] + 0.1 * patches.scale, c[2]])
+    tall = 1.04 * max(ext[2], ext[0] * height / width)
+    return Camera(eye, (c[0], lo[1], c[2]), (0, 0, -1), 45.0, width, height, tall)
+
+
+def cutaway_mask(patches) -> np.ndarray:
+    """(n,) bool, False for ceilings and ceiling lights, to look in from above.
+
+    Hidden: patches whose normal points down (n_y < -0.7) with centroid in the
+    top 25% of the box height (ceilings, the undersides of light fixtures), and
+    emitters anywhere in that top 25% (lamps hung under the ceiling).
+    """
+    lo, hi = patches.bounds
+    top = patches.centroid[:, 1] >= lo[1] + 0.75 * (hi[1] - lo[1])
+    down = patches.normal[:, 1] < -0.7
+    lamp = np.any(patches.emission > 0, axis=1)
+    return ~(top & (down | lamp))
+
+
+# ---------------------------------------------------------------------------------
+def luminance(img: np.ndarray) -> np.ndarray:
+    """(..., 3) linear RGB -> (...) Rec. 709 luminance."""
+    return np.asarray(img, np.float64) @ _LUMA
+
+
+def barycentric(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """tri (m,3,3), p (m,3) -> (m,3) barycentrics of p projected on each plane.
+
+    Clipped to the triangle and renormalised; degenerate triangles get 1/3 each.
+    """
+    a = tri[:, 0]
+    v0, v1, v2 = tri[:, 1] - a, tri[:, 2] - a, p - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    ok = den > 1e-30 * np.maximum(d00 * d11, 1e-300)
+    safe = np.where(ok, den, 1.0)
+    v = (d11 * d20 - d01 * d21) / safe
+    w = (d00 * d21 - d01 * d20) / safe
+    bc = np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, None)
+    s = bc.sum(axis=1, keepdims=True)
+    bc = np.where(s > 0, bc / np.where(s > 0, s, 1.0), 1.0 / 3.0)
+    bc[~ok] = 1.0 / 3.0
+    return bc
+
+
+def render(
+    patches,
+    camera: Camera,
+    mask: np.ndarray | None = None,
+    corner_values: np.ndarray | None = None,
+    tracer: Tracer | None = None,
+    backface_color=None,
+) -> np.ndarray:
+    """Ray-cast image of the patch table.
+
+    mask          : (n,) bool, patches to draw (default all)
+    corner_values : (n, 3, 3) radiosity per corner for the *whole* table
+                    (default :func:`corner_radiosity`); interpolated
+                    barycentrically over each hit triangle
+    tracer        : a Tracer built on ``patches.triangles[mask]`` in that order
+                    (reuse it across views); built here when None
+    backface_color: RGB for pixels that see a patch from behind (flipped
+                    normals).  None: ``BACKFACE_COLOR`` times the 99th
+                    percentile of the front-face luminance (1 if none), so
+                    the flag survives :func:`tonemap`.
+
+    returns (H, W, 3) float32 radiance B / pi; misses are 0.
+    """
+    n = len(patches)
+    idx = np.arange(n) if mask is None else np.flatnonzero(np.asarray(mask, bool).reshape(n))
+    if corner_values is None:
+        corner_values = corner_radiosity(patches)
+    corner_values = np.asarray(corner_values, np.float64).reshape(n, 3, 3)
+    if tracer is None:
+        tracer = Tracer(patches.triangles[idx])
+    elif tracer.n != len(idx):
+        raise ValueError(f"tracer holds {tracer.n} triangles but the mask selects {len(idx)}")
+    origins, dirs = camera.rays()
+    prim, t = tracer.intersect(origins, dirs)
+    img = np.zeros((len(prim), 3))
+    hit = np.flatnonzero(prim != MISS)
+    p = idx[prim[hit]]
+    point = origins[hit] + t[hit, None] * dirs[hit]
+    bc = barycentric(patches.triangles[p], point)
+    img[hit] = np.einsum("ik,ikc->ic", bc, corner_values[p]) / math.pi
+    back = np.einsum("ij,ij->i", dirs[hit], patches.normal[p]) > 0
+    if backface_color is None:
+        front = luminance(img[hit[~back]])
+        ref = float(np.percentile(front, 99.0)) if front.size else 0.0
+        flag = np.asarray(BACKFACE_COLOR) * (ref if ref > 0 else 1.0)
+    else:
+        flag = np.asarray(backface_color, np.float64).reshape(3)
+    img[hit[back]] = flag
+    return img.reshape(camera.height, camera.width, 3).astype(np.float32)
+
+
+def _srgb_oetf(x: np.ndarray) -> np.ndarray:
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
+def tonemap(
+    img: np.ndarray,
+    exposure: float | None = None,
+    percentile: float = 99.0,
+    white: float = 0.9,
+    srgb: bool = True,
+) -> np.ndarray:
+    """Linear (..., 3) image -> (..., 3) uint8, sRGB-encoded unless ``srgb=False``.
+
+    ``exposure`` multiplies the image; by default the ``percentile`` of the
+    luminance of the non-black pixels maps to ``white`` (an all-black image
+    keeps exposure 1).  Values are then clamped to [0, 1]; NaN become 0.
+    """
+    x = np.nan_to_num(np.asarray(img, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    if exposure is None:
+        lum = luminance(x).ravel()
+        lum = lum[lum > 0]
+        ref = float(np.percentile(lum, percentile)) if lum.size else 0.0
+        exposure = white / ref if ref > 0 else 1.0
+    x = np.clip(x * float(exposure), 0.0, 1.0)
+    if srgb:
+        x = _srgb_oetf(x)
+    return np.round(x * 255.0).astype(np.uint8)

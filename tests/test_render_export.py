@@ -1,0 +1,358 @@
+"""Tests for dcrad.render and dcrad.export on small hand-built patch tables."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dcrad.export import (
+    input_triangle_radiosity,
+    write_exr,
+    write_glb,
+    write_patches_ply,
+    write_png,
+    write_radiosity_npz,
+)
+from dcrad.patches import Patches
+from dcrad.render import (
+    Camera,
+    auto_camera,
+    barycentric,
+    corner_radiosity,
+    cutaway_mask,
+    render,
+    tonemap,
+    topdown_camera,
+)
+
+
+def _table(tris, B, E=None, source=None):
+    tris = np.asarray(tris, np.float64).reshape(-1, 3, 3)
+    n = len(tris)
+    B = np.broadcast_to(np.asarray(B, np.float64), (n, 3)).copy()
+    E = np.zeros((n, 3)) if E is None else E
+    return Patches(
+        vertices=tris.reshape(-1, 3),  # unshared: corner_radiosity must merge by position
+        faces=np.arange(3 * n).reshape(n, 3),
+        rho=0.5,
+        emission=E,
+        source=np.arange(n) if source is None else source,
+        obj=np.zeros(n, np.int32),
+        radiosity=B,
+    )
+
+
+def _quad(p0, p1, p2, p3):
+    """Two CCW triangles of the quad p0 p1 p2 p3 (CCW seen from the front)."""
+    return [[p0, p1, p2], [p0, p2, p3]]
+
+
+def _floor_tris():
+    """Unit square in y=0 facing +y: 2x2 cells, all diagonals through the centre."""
+    c = (0.5, 0.0, 0.5)
+    ring = [(0, 0, 0), (0, 0, 0.5), (0, 0, 1), (0.5, 0, 1), (1, 0, 1), (1, 0, 0.5), (1, 0, 0), (0.5, 0, 0)]
+    return [[c, ring[i], ring[(i + 1) % 8]] for i in range(8)]  # CCW about +y
+
+
+def _linear(p):
+    return 2.0 + 3.0 * p[..., 0] - 1.0 * p[..., 2]
+
+
+@pytest.fixture
+def scene():
+    floor = np.array(_floor_tris(), float)
+    # wall x=0 facing +x, perpendicular to the floor, sharing the floor's edge
+    wall = np.array(_quad((0, 0, 0), (0, 1, 0), (0, 1, 1), (0, 0, 1)), float)
+    # thin wall standing on the floor at x=0.5: two quads 1 mm apart facing away
+    a = np.array(_quad((0.4995, 0, 0), (0.4995, 0, 1), (0.4995, 1, 1), (0.4995, 1, 0)), float)  # -x
+    b = np.array(_quad((0.5005, 0, 0), (0.5005, 1, 0), (0.5005, 1, 1), (0.5005, 0, 1)), float)  # +x
+    # zero-thickness double wall at z=0.5 above the floor: same positions, opposite normals
+    za = np.array(_quad((0, 1.2, 0.5), (1, 1.2, 0.5), (1, 2.2, 0.5), (0, 2.2, 0.5)), float)
+    zb = za[:, ::-1]
+    tris = np.concatenate([floor, wall, a, b, za, zb])
+    B = np.zeros((len(tris), 3))
+    B[:8] = _linear(floor.mean(axis=1))[:, None] * [1.0, 0.5, 0.25]
+    B[8:10] = [100.0, 0, 0]
+    B[10:12] = [0, 50.0, 0]
+    B[12:14] = [0, 0, 70.0]
+    B[14:16] = [7.0, 0, 0]
+    B[16:18] = [0, 9.0, 0]
+    return _table(tris, B)
+
+
+def test_normals_of_fixture(scene):
+    n = scene.normal
+    assert np.allclose(n[:8], [0, 1, 0])
+    assert np.allclose(n[8:10], [1, 0, 0])
+    assert np.allclose(n[10:12], [-1, 0, 0]) and np.allclose(n[12:14], [1, 0, 0])
+    assert np.allclose(n[14:16], [0, 0, 1]) and np.allclose(n[16:18], [0, 0, -1])
+
+
+def test_corner_radiosity_no_bleeding(scene):
+    cv = corner_radiosity(scene)
+    B = scene.radiosity
+    assert cv.shape == (len(scene), 3, 3)
+    # walls with constant B keep exactly that B at every corner
+    for sl in (slice(8, 10), slice(10, 12), slice(12, 14), slice(14, 16), slice(16, 18)):
+        assert np.allclose(cv[sl], B[sl][:, None, :])
+    # the floor never picks up the walls' channels (walls have zero in 1..2 or 0)
+    assert np.allclose(cv[:8, :, 1], 0.5 * cv[:8, :, 0])
+    assert np.allclose(cv[:8, :, 2], 0.25 * cv[:8, :, 0])
+    # each floor corner lies within the range of the floor patches
+    lo, hi = B[:8, 0].min(), B[:8, 0].max()
+    assert np.all((cv[:8, :, 0] >= lo - 1e-12) & (cv[:8, :, 0] <= hi + 1e-12))
+
+
+def test_corner_radiosity_linear_field_at_symmetric_vertex(scene):
+    cv = corner_radiosity(scene)
+    # corner 0 of every floor triangle is the centre, surrounded symmetrically
+    assert np.allclose(cv[:8, 0, 0], _linear(np.array([0.5, 0.0, 0.5])))
+    # with a crease of 100 deg the perpendicular wall mixes, but opposite faces never do
+    cv2 = corner_radiosity(scene, crease_angle_deg=100.0)
+    assert np.allclose(cv2[14:16], scene.radiosity[14:16][:, None, :])
+    assert np.allclose(cv2[16:18], scene.radiosity[16:18][:, None, :])
+    assert np.all(cv2[10:12, :, 2] == 0)  # -x side of the thin wall never sees +x side
+
+
+def test_corner_radiosity_merges_near_duplicates():
+    tris = np.array(_quad((0, 0, 0), (0, 0, 1), (1, 0, 1), (1, 0, 0)), float)
+    tris[1] += 1e-12  # duplicated vertices off by round-off
+    p = _table(tris, [[1.0, 1, 1], [3.0, 3, 3]])
+    cv = corner_radiosity(p)
+    # shared diagonal corners average the two equal-area triangles
+    assert np.allclose(cv[0, 0], 2.0) and np.allclose(cv[0, 2], 2.0)
+    assert np.allclose(cv[0, 1], 1.0) and np.allclose(cv[1, 2], 3.0)
+    # chunked pair processing gives the same answer
+    assert np.allclose(corner_radiosity(p, max_pairs=3), cv)
+
+
+def test_barycentric():
+    tri = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]], float)
+    bc = barycentric(np.repeat(tri, 2, 0), np.array([[0.25, 0.5, 0.0], [0.25, 0.5, 0.1]]))
+    assert np.allclose(bc, [[0.25, 0.25, 0.5]] * 2)
+
+
+def _emitter_square(B=10.0):
+    # unit square at z=0 facing +z
+    tris = _quad((-0.5, -0.5, 0), (0.5, -0.5, 0), (0.5, 0.5, 0), (-0.5, 0.5, 0))
+    return _table(tris, B, E=np.full((2, 3), B))
+
+
+def test_camera_rays():
+    cam = Camera((0, 0, 5), (0, 0, 0), (0, 1, 0), 90.0, 4, 2)
+    o, d = cam.rays()
+    assert o.shape == d.shape == (8, 3)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1)
+    assert d[0, 0] < 0 and d[0, 1] > 0  # top-left pixel looks left and up
+    ortho = Camera((0, 5, 0), (0, 0, 0), (0, 0, -1), 45, 4, 2, orthographic_height=2.0)
+    o, d = ortho.rays()
+    assert np.allclose(d, [0, -1, 0])
+    assert np.allclose(o[0], [-1.5, 5, -0.5])  # +x right, -z up
+
+
+def test_render_emissive_square_head_on():
+    sq = _emitter_square(10.0)
+    cam = Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40.0, 64, 48)
+    img = render(sq, cam)
+    assert img.shape == (48, 64, 3) and img.dtype == np.float32
+    lum = img[..., 0]
+    covered = lum > 0
+    assert 0.1 < covered.mean() < 0.9
+    assert np.allclose(img[covered], 10.0 / math.pi, rtol=1e-6)
+    assert np.all(img[~covered] == 0)
+    assert covered[24, 32] and not covered[0, 0]
+    # orthographic head-on: the square covers exactly its area
+    ortho = Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40.0, 40, 40, orthographic_height=2.0)
+    im2 = render(sq, ortho)
+    assert (im2[..., 0] > 0).sum() == 400
+
+
+def test_render_backface_flag_and_mask():
+    sq = _emitter_square(10.0)
+    cam = Camera((0, 0, -3), (0, 0, 0), (0, 1, 0), 40.0, 32, 32)
+    img = render(sq, cam, backface_color=(0.05, 0.0, 0.05))
+    hit = img.any(axis=2)
+    assert hit.any()
+    assert np.allclose(img[hit], [0.05, 0.0, 0.05])
+    auto = render(sq, cam)  # relative flag: still magenta, never green
+    assert np.all(auto[hit][:, 1] == 0) and np.all(auto[hit][:, 0] > 0)
+    none = render(sq, cam, mask=np.zeros(2, bool))
+    assert np.all(none == 0)
+
+
+def _box(open_front: bool):
+    """Cornell-like box [0,1]^3 with inward normals; front is z=1."""
+    q = []
+    q += _quad((0, 0, 0), (0, 0, 1), (1, 0, 1), (1, 0, 0))  # floor, +y
+    q += _quad((0, 1, 0), (1, 1, 0), (1, 1, 1), (0, 1, 1))  # ceiling, -y
+    q += _quad((0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0))  # back z=0, +z
+    q += _quad((0, 0, 0), (0, 1, 0), (0, 1, 1), (0, 0, 1))  # left x=0, +x
+    q += _quad((1, 0, 0), (1, 0, 1), (1, 1, 1), (1, 1, 0))  # right x=1, -x
+    if not open_front:
+        q += _quad((0, 0, 1), (0, 1, 1), (1, 1, 1), (1, 0, 1))  # front z=1, -z
+    q += _quad((0.4, 0.99, 0.4), (0.6, 0.99, 0.4), (0.6, 0.99, 0.6), (0.4, 0.99, 0.6))  # lamp, -y
+    n = len(q)
+    E = np.zeros((n, 3))
+    E[-2:] = 50.0
+    return _table(q, np.full((n, 3), 5.0) + E, E=E)
+
+
+def test_auto_camera_open_and_closed_box():
+    box = _box(open_front=True)
+    cam = auto_camera(box, 64, 48)
+    assert cam.eye[2] > 1.0 and abs(cam.eye[0] - 0.5) < 1e-9  # outside, in front
+    img = render(box, cam)
+    hit = img.max(axis=2) > 0
+    assert hit.mean() > 0.5 and hit[24, 32]
+    assert np.all(img[hit][:, 1] > 0)  # no back faces seen (the flag has no green)
+    closed = _box(open_front=False)
+    cam = auto_camera(closed, 64, 48)
+    assert np.all((np.array(cam.eye) > 0) & (np.array(cam.eye) < 1))
+    img = render(closed, cam)
+    assert np.all(img[..., 1] > 0)
+
+
+def test_topdown_cutaway():
+    box = _box(open_front=False)
+    mask = cutaway_mask(box)
+    assert not mask[2:4].any() and not mask[-2:].any()  # ceiling and lamp hidden
+    assert mask[:2].all() and mask[4:12].all()
+    cam = topdown_camera(box, 50, 50)
+    img = render(box, cam, mask=mask)
+    assert np.all(img[..., 1] >= 0) and (img[..., 1] > 0).mean() > 0.8
+    assert np.allclose(img[25, 25], 5.0 / math.pi)  # the floor in the middle
+
+
+def test_tonemap():
+    img = np.zeros((10, 10, 3), np.float32)
+    img[:5] = 2.0
+    out = tonemap(img)
+    assert out.dtype == np.uint8 and out.shape == (10, 10, 3)
+    assert np.all(out[5:] == 0)
+    expect = round((1.055 * 0.9 ** (1 / 2.4) - 0.055) * 255)
+    assert np.all(out[:5] == expect)
+    assert np.all(tonemap(img, exposure=10.0)[:5] == 255)
+    assert np.all(tonemap(np.zeros((2, 2, 3))) == 0)
+
+
+def test_png_exr_roundtrip(tmp_path):
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(1)
+    u8 = rng.integers(0, 256, (7, 11, 3), dtype=np.uint8)
+    write_png(tmp_path / "a" / "x.png", u8)
+    back = oiio.ImageBuf(str(tmp_path / "a" / "x.png")).get_pixels(oiio.UINT8)
+    assert np.array_equal(back, u8)
+    f = (rng.random((7, 11, 3)) * 100).astype(np.float32)
+    write_exr(tmp_path / "x.exr", f)
+    back = oiio.ImageBuf(str(tmp_path / "x.exr")).get_pixels(oiio.FLOAT)
+    assert back.shape == f.shape
+    assert np.allclose(back, f, rtol=1e-3, atol=1e-4)
+    write_exr(tmp_path / "y.exr", f, half=False)
+    assert np.array_equal(oiio.ImageBuf(str(tmp_path / "y.exr")).get_pixels(oiio.FLOAT), f)
+    with pytest.raises(OSError, match="nope"):
+        write_png(tmp_path / "nope.unknownext", u8)
+
+
+def test_ply_face_radiosity_roundtrip(tmp_path, scene):
+    import trimesh
+
+    write_patches_ply(tmp_path / "p.ply", scene)
+    assert open(tmp_path / "p.ply", "rb").read(40).startswith(b"ply\nformat binary_little_endian")
+    m = trimesh.load(tmp_path / "p.ply", process=False)
+    assert np.array_equal(m.faces, scene.faces)
+    assert np.allclose(m.vertices, scene.vertices, atol=1e-6)
+    data = m.metadata["_ply_raw"]["face"]["data"]
+    got = np.column_stack([data[f"radiosity_{c}"] for c in "rgb"])
+    assert np.allclose(got, scene.radiosity, rtol=1e-6)
+    assert np.array_equal(data["source"], scene.source)
+    write_patches_ply(tmp_path / "d.ply", scene, dtype=np.float64)
+    data = trimesh.load(tmp_path / "d.ply", process=False).metadata["_ply_raw"]["face"]["data"]
+    assert np.array_equal(np.column_stack([data[f"radiosity_{c}"] for c in "rgb"]), scene.radiosity)
+
+
+def test_glb_has_vertex_colours(tmp_path, scene):
+    import trimesh
+
+    cv = corner_radiosity(scene)
+    write_glb(tmp_path / "s.glb", scene, cv)
+    write_glb(tmp_path / "lit.glb", scene, cv, unlit=False)
+    lit = trimesh.load(tmp_path / "lit.glb", process=False)
+    (g,) = lit.geometry.values()
+    assert g.visual.kind == "vertex"
+    lit_col = np.asarray(g.visual.vertex_colors)
+    loaded = trimesh.load(tmp_path / "s.glb", process=False)
+    (g,) = loaded.geometry.values()
+    assert len(g.faces) == len(scene) and len(g.vertices) == 3 * len(scene)
+    assert np.allclose(g.vertices, scene.triangles.reshape(-1, 3), atol=1e-6)
+    col = np.asarray(g.visual.vertex_attributes["color"])  # unlit material: kept here
+    assert np.array_equal(col, lit_col)
+    assert col.shape == (3 * len(scene), 4) and col.dtype == np.uint8
+    assert col[:, :3].max() > 0 and np.all(col[:, 3] == 255)
+    # the wall with B = (100, 0, 0) is pure red
+    assert np.all(col[24:30, 1:3] == 0) and np.all(col[24:30, 0] > 0)
+    raw = open(tmp_path / "s.glb", "rb").read()
+    assert b"KHR_materials_unlit" in raw
+
+
+def test_npz_area_weighted_per_input_triangle(tmp_path):
+    # input triangle 0 -> 3 patches of areas 0.5, 0.25, 0.25; triangle 1 -> 1 patch;
+    # triangle 2 dropped (no patch)
+    t = [
+        [(0, 0, 0), (1, 0, 0), (0, 1, 0)],
+        [(0, 0, 0), (0.5, 0, 0), (0, 1, 0)],
+        [(0, 0, 0), (0.5, 0, 0), (0, 0.5, 0)],
+        [(2, 0, 0), (3, 0, 0), (2, 1, 0)],
+    ]
+    p = _table(t, [[1.0, 2, 3], [4.0, 5, 6], [7.0, 8, 9], [10.0, 10, 10]], source=[0, 0, 0, 1])
+    assert np.allclose(p.area[:3], [0.5, 0.25, 0.125])
+    write_radiosity_npz(tmp_path / "r.npz", p, 3, {"iterations": np.arange(3), "E": np.ones(2)})
+    z = np.load(tmp_path / "r.npz")
+    w = p.area[:3]
+    expect0 = (w[:, None] * p.radiosity[:3]).sum(0) / w.sum()
+    assert np.allclose(z["B"][0], expect0)
+    assert np.allclose(z["B"][1], 10.0) and np.all(z["B"][2] == 0)
+    assert z["valid"].tolist() == [True, True, False]
+    for k in ("patch_B", "patch_unshot", "patch_area", "patch_source", "patch_rho", "patch_emission"):
+        assert len(z[k]) == 4
+    assert np.array_equal(z["iterations"], np.arange(3))
+    bad = _table(t[:1], [[np.nan, 0, 0]], source=[0])
+    with pytest.raises(Exception, match="non-finite"):
+        write_radiosity_npz(tmp_path / "bad.npz", bad, 1, {})
+    assert not (tmp_path / "bad.npz").exists()
+    with pytest.raises(ValueError):
+        write_radiosity_npz(tmp_path / "c.npz", p, 3, {"B": np.zeros(1)})
+    b, valid = input_triangle_radiosity(p, 3)
+    assert np.allclose(b, z["B"]) and np.array_equal(valid, z["valid"])
+
+
+def test_corner_radiosity_matches_brute_force():
+    rng = np.random.default_rng(3)
+    # a bumpy height field on a 6x6 grid (shared vertices), some faces flipped
+    g = np.stack(np.meshgrid(np.arange(6.0), np.arange(6.0), indexing="ij"), -1).reshape(-1, 2)
+    verts = np.column_stack([g[:, 0], rng.random(len(g)) * 1.5, g[:, 1]])
+    faces = []
+    for i in range(5):
+        for j in range(5):
+            a, b, c, d = i * 6 + j, i * 6 + j + 1, (i + 1) * 6 + j + 1, (i + 1) * 6 + j
+            faces += [[a, b, c], [a, c, d]]
+    faces = np.array(faces)
+    flip = rng.random(len(faces)) < 0.2
+    faces[flip] = faces[flip][:, ::-1]
+    n = len(faces)
+    p = Patches(verts, faces, 0.5, 0.0, np.arange(n), np.zeros(n, np.int32), radiosity=rng.random((n, 3)))
+    cv = corner_radiosity(p, crease_angle_deg=25.0)
+    cos_t = math.cos(math.radians(25.0))
+    tri, nrm, area = p.triangles, p.normal, p.area
+    for q in range(n):  # reference: plain loops
+        for k in range(3):
+            num, den = np.zeros(3), 0.0
+            for r in range(n):
+                touches = np.any(np.all(np.isclose(tri[r], tri[q, k]), axis=1))
+                d = nrm[q] @ nrm[r]
+                if touches and d >= cos_t - 1e-9 and d > 0:
+                    num += area[r] * p.radiosity[r]
+                    den += area[r]
+            assert np.allclose(cv[q, k], num / den)
