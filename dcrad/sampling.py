@@ -29,16 +29,19 @@ def kronecker_alpha(dim: int) -> np.ndarray:
     return np.mod(1.0 / phi ** np.arange(1, dim + 1), 1.0)
 
 
-def lattice(index: np.ndarray, shift: np.ndarray, dim: int) -> np.ndarray:
+def lattice(index: np.ndarray, shift: np.ndarray, dim: int, dtype=np.float64) -> np.ndarray:
     """Points of a randomly shifted R_d lattice.
 
     index : (m,) int   point number within its own set (0, 1, 2, ...)
     shift : (m, dim)   random shift of the set the point belongs to
-    returns (m, dim) float64 in [0, 1)
+    returns (m, dim) ``dtype`` in [0, 1)
     """
     alpha = kronecker_alpha(dim)
-    # (index + 0.5) * alpha keeps the first point away from the lattice origin
-    return np.mod((index[:, None] + 0.5) * alpha[None, :] + shift, 1.0)
+    # (index + 0.5) * alpha keeps the first point away from the lattice origin;
+    # the fractional part is taken in float64 (index * alpha needs the digits)
+    u = (index[:, None] + 0.5) * alpha[None, :] + shift
+    u -= np.floor(u)
+    return u.astype(dtype, copy=False)
 
 
 def triangle_points(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -55,17 +58,18 @@ def triangle_points(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray, u: np.ndarra
 def concentric_disk(u: np.ndarray) -> np.ndarray:
     """Shirley-Chiu concentric map of the unit square onto the unit disk.
 
-    u : (m, 2) in [0,1)^2 -> (m, 2) points with x^2 + y^2 <= 1 (area preserving up to pi/4)
+    u : (m, 2) in [0,1)^2 -> (m, 2) points with x^2 + y^2 <= 1, same dtype as u
+    (float32 input keeps the trigonometry in float32, an order of magnitude faster).
     """
-    a = 2.0 * u[:, 0] - 1.0
-    b = 2.0 * u[:, 1] - 1.0
+    one = u.dtype.type(1)
+    a = 2 * u[:, 0] - one
+    b = 2 * u[:, 1] - one
     first = np.abs(a) > np.abs(b)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r = np.where(first, a, b)
-        phi = np.where(first, (np.pi / 4) * (b / a), (np.pi / 2) - (np.pi / 4) * (a / b))
-    zero = (a == 0) & (b == 0)
-    r = np.where(zero, 0.0, r)
-    phi = np.where(zero, 0.0, phi)
+    r = np.where(first, a, b)
+    num = np.where(first, b, a)
+    den = np.where(r == 0, one, r)
+    quarter = u.dtype.type(np.pi / 4)
+    phi = np.where(first, quarter * (num / den), 2 * quarter - quarter * (num / den))
     return np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
 
 
@@ -100,7 +104,7 @@ def cosine_hemisphere(u: np.ndarray) -> np.ndarray:
     equal projected solid angle, so the square's cells are cosine-weighted bins.
     """
     d = concentric_disk(u)
-    z = np.sqrt(np.maximum(0.0, 1.0 - np.einsum("ij,ij->i", d, d)))
+    z = np.sqrt(np.maximum(0, 1 - np.einsum("ij,ij->i", d, d)))
     return np.column_stack([d, z])
 
 

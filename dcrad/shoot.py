@@ -19,7 +19,7 @@ import numpy as np
 from .config import TOL
 from .patches import Patches
 from .rays import MISS, Tracer
-from .sampling import cosine_hemisphere, lattice, onb, triangle_points
+from .sampling import cosine_hemisphere, lattice, onb
 
 __all__ = ["RayBatch", "Tally", "patch_rays", "trace", "deposit"]
 
@@ -83,22 +83,29 @@ def patch_rays(
     total = int(counts.sum())
     owner = np.repeat(np.arange(k), counts)
     start = np.cumsum(counts) - counts
-    index = np.arange(total) - start[owner]
-    u = lattice(index, rng.random((k, 4))[owner], 4)
+    index = np.arange(total) - np.repeat(start, counts)
+    u = lattice(index, np.repeat(rng.random((k, 4)), counts, axis=0), 4, dtype=np.float32)
 
-    # Sample points on the shooters' triangles
-    faces = patches.faces[shooters][owner]
+    # Per-shooter geometry, repeated per ray (np.repeat is ~8x faster than a gather)
+    faces = patches.faces[shooters]
     v = patches.vertices
-    points = triangle_points(v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]], u[:, :2])
+    v0 = v[faces[:, 0]]
+    n_k = patches.normal[shooters]
+    t_k, b_k = onb(n_k)
+    frames = np.repeat(np.stack([t_k, b_k, n_k], axis=1).astype(np.float32), counts, axis=0)
+    corners = np.repeat(np.stack([v0, v[faces[:, 1]] - v0, v[faces[:, 2]] - v0], axis=1), counts, axis=0)
 
-    # Cosine directions in each shooter's frame
-    n = patches.normal[shooters][owner]
-    t, b = onb(n)
+    # Stratified points on the triangles (float64 positions), lifted off the surface
+    s = np.sqrt(u[:, 0])
+    b1 = (s * (1 - u[:, 1])).astype(np.float64)
+    b2 = (s * u[:, 1]).astype(np.float64)
+    origins = corners[:, 0] + b1[:, None] * corners[:, 1] + b2[:, None] * corners[:, 2]
+    origins += ray_offset(patches) * frames[:, 2]
+
+    # Cosine directions in each shooter's frame (float32: Embree's precision)
     local = cosine_hemisphere(u[:, 2:])
-    dirs = local[:, :1] * t + local[:, 1:2] * b + local[:, 2:3] * n
-
-    origins = points + ray_offset(patches) * n
-    per_ray = (power / counts[:, None])[owner]
+    dirs = np.einsum("mi,mij->mj", local, frames)
+    per_ray = np.repeat(power / counts[:, None], counts, axis=0)
     return RayBatch(origins=origins, dirs=dirs, power=per_ray, shooter=owner)
 
 
