@@ -1,0 +1,163 @@
+"""The `dcrad` command end to end, as a real process: outputs, bad input, Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+import trimesh
+
+DCRAD = [sys.executable, "-m", "dcrad.cli"]
+
+
+def run(*args, timeout=300):
+    return subprocess.run([*DCRAD, *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+def read_image(path: Path) -> np.ndarray:
+    inp = oiio.ImageInput.open(str(path))
+    assert inp is not None, oiio.geterror()
+    try:
+        return inp.read_image(format=oiio.FLOAT)
+    finally:
+        inp.close()
+
+
+@pytest.mark.parametrize("scene", ["cornell", "office", "furnace"])
+def test_builtin_scene_outputs_agree(tmp_path, scene):
+    out = tmp_path / "out"
+    r = run("solve", scene, "--out", out, "--tol", "0.05", "--width", "160", "--height", "120")
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    report = json.loads((out / "report.json").read_text())
+    # the ledger closes to round-off on every built-in scene
+    assert report["ledger"]["closure"] < 1e-9
+    assert report["residual"] <= 0.05 and report["stats"]["stopped_by"] == "tolerance"
+    assert report["snapshots"][0]["rays"] == 0 and len(report["snapshots"]) >= 3
+
+    npz = np.load(out / "radiosity.npz")
+    assert npz["B"].shape == (report["scene"]["input_triangles"], 3)
+    for key in npz.files:
+        if npz[key].dtype.kind == "f":
+            assert np.all(np.isfinite(npz[key])), key
+    patch_b, area, source = npz["patch_B"], npz["patch_area"], npz["patch_source"]
+    # B per input triangle is the area-weighted mean of its patches
+    t = len(npz["B"])
+    for c in range(3):
+        num = np.bincount(source, weights=patch_b[:, c] * area, minlength=t)
+        den = np.bincount(source, weights=area, minlength=t)
+        ok = den > 0
+        assert np.allclose(npz["B"][ok, c], num[ok] / den[ok], rtol=1e-12, atol=0)
+    # energy: the reflected power in B matches the ledger's absorbed power (uniform rho aside)
+    assert np.all(patch_b >= 0)
+
+    # PLY: faces in patch order, radiosity as face properties
+    ply = trimesh.load(out / "patches.ply", process=False)
+    raw = ply.metadata["_ply_raw"]["face"]["data"]
+    assert len(ply.faces) == len(patch_b)
+    for c, name in enumerate(("radiosity_r", "radiosity_g", "radiosity_b")):
+        assert np.allclose(raw[name].ravel(), patch_b[:, c], rtol=1e-6, atol=1e-6 * patch_b.max())
+
+    # GLB opens and has one coloured vertex per patch corner
+    glb = trimesh.load(out / "scene.glb", force="mesh", process=False)
+    assert len(glb.faces) == len(patch_b)
+
+    # previews: EXR is linear and finite, PNG is 8-bit and not black
+    exr = read_image(out / "preview.exr")
+    png = read_image(out / "preview.png")
+    assert exr.shape == (120, 160, 3) and np.all(np.isfinite(exr)) and exr.max() > 0
+    assert png.shape == (120, 160, 3) and png.max() > 0.2
+
+
+def write(tmp: Path, obj: str, mtl: str | None = None, name="s.obj") -> Path:
+    if mtl is not None:
+        (tmp / "s.mtl").write_text(mtl)
+    (tmp / name).write_text(obj)
+    return tmp / name
+
+
+MTL = "newmtl white\nKd 0.5 0.5 0.5\nnewmtl lamp\nKd 0.5 0.5 0.5\nKe 10 10 10\n"
+QUADS = (
+    "mtllib s.mtl\no floor\nusemtl white\nv 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\nf 1 3 2\nf 1 4 3\n"
+    "o lamp\nusemtl lamp\nv 0 1 0\nv 1 1 0\nv 1 1 1\nv 0 1 1\nf 5 6 7\nf 5 7 8\n"
+)
+
+BAD = {
+    "missing file": (None, None, "no such file"),
+    "malformed vertex": ("mtllib s.mtl\no thing\nv 1 2\nf 1 2 3\n", MTL, "line"),
+    "face index out of range": ("mtllib s.mtl\no thing\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", MTL, "line"),
+    "nan coordinate": (QUADS.replace("v 1 0 1", "v nan 0 1"), MTL, "floor"),
+    "reflectance one": (QUADS, MTL.replace("Kd 0.5 0.5 0.5\nnewmtl lamp", "Kd 1.0 0.5 0.5\nnewmtl lamp"), "white"),
+    "negative emission": (QUADS, MTL.replace("Ke 10 10 10", "Ke 10 -1 10"), "lamp"),
+    "empty scene": ("mtllib s.mtl\no nothing\nv 0 0 0\n", MTL, "no faces"),
+    "mtllib outside folder": (QUADS.replace("mtllib s.mtl", "mtllib ../evil.mtl"), MTL, "../evil.mtl"),
+    "unsupported format": ("solid x\n", None, "unsupported"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_gives_one_clear_line(tmp_path, case):
+    obj, mtl, needle = BAD[case]
+    if obj is None:
+        path = tmp_path / "nope.obj"
+    else:
+        path = write(tmp_path, obj, mtl, name="s.stl" if case == "unsupported format" else "s.obj")
+    r = run("solve", path, "--out", tmp_path / "out")
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln]
+    assert len(lines) == 1 and lines[0].startswith("dcrad: error:"), r.stderr
+    assert needle.lower() in lines[0].lower(), lines[0]
+    assert "Traceback" not in r.stderr
+    assert not (tmp_path / "out" / "radiosity.npz").exists()
+
+
+def test_degenerate_triangles_dropped_with_warning(tmp_path):
+    obj = QUADS + "o sliver\nusemtl white\nv 0 0.5 0\nv 1 0.5 0\nv 2 0.5 0\nf 9 10 11\n"
+    path = write(tmp_path, obj, MTL)
+    r = run("solve", path, "--out", tmp_path / "out", "--tol", "0.01")
+    assert r.returncode == 0, r.stderr
+    assert "degenerate" in r.stderr and "sliver" in r.stderr
+    npz = np.load(tmp_path / "out" / "radiosity.npz")
+    assert npz["B"].shape == (5, 3) and not npz["valid"][4] and np.all(npz["B"][4] == 0)
+    assert all(np.all(np.isfinite(npz[k])) for k in npz.files if npz[k].dtype.kind == "f")
+
+
+def test_no_emitters_gives_zero_solution_and_warning(tmp_path):
+    path = write(tmp_path, QUADS, MTL.replace("Ke 10 10 10", "Ke 0 0 0"))
+    r = run("solve", path, "--out", tmp_path / "out")
+    assert r.returncode == 0, r.stderr
+    assert "no emitters" in r.stderr
+    npz = np.load(tmp_path / "out" / "radiosity.npz")
+    assert np.all(npz["B"] == 0)
+
+
+def test_ctrl_c_stops_cleanly_and_writes_results(tmp_path):
+    out = tmp_path / "out"
+    # a stiff furnace with an unreachable tolerance: only Ctrl-C ends it
+    proc = subprocess.Popen(
+        [*DCRAD, "solve", "furnace:rho=0.99", "--out", str(out), "--tol", "1e-9", "--progress",
+         "--width", "64", "--height", "48"],
+        stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1,
+    )
+    # wait for the progress bar to appear: the solver is running
+    buf = ""
+    while "residual" not in buf:
+        ch = proc.stderr.read(1)
+        assert ch, f"dcrad ended early: {buf}"
+        buf += ch
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr
+    assert "Traceback" not in stderr
+    report = json.loads((out / "report.json").read_text())
+    assert report["stats"]["stopped_by"] == "stopped"
+    assert report["ledger"]["closure"] < 1e-9
+    assert (out / "preview.png").exists() and (out / "radiosity.npz").exists()
