@@ -7,11 +7,17 @@ room (i, j) covers ``x in [j p, j p + room]``, ``z in [i p, i p + room]`` with
 pitch ``p = room + wall`` (see :func:`room_rect`), and the building spans
 ``[0, cols p - wall] x [0, height] x [0, rows p - wall]``.
 
-Surfaces: one floor quad (+Y) and one ceiling quad (-Y) over the whole
-building; outer walls are single-sided quads facing in, one per room side
-(``outer_south_j`` at z = 0, ``outer_north_j``, ``outer_west_i`` at x = 0,
-``outer_east_i``); interior walls are boxes with their faces outward, minus the
-faces hidden against floor, ceiling, outer walls and wall junctions:
+Surfaces: per room one floor quad ``room_i_j_floor`` (+Y) and one ceiling
+quad ``room_i_j_ceiling`` (-Y) covering exactly its free ``room`` x ``room``
+area, plus a floor strip ``door_h_i_j_floor`` / ``door_v_i_j_floor`` under each
+doorway (door width x wall thickness, between the jambs; the ceiling there is
+the lintel's underside).  Nothing lies under or over a wall, so no floor or
+ceiling patch straddles two rooms (edges of adjacent pieces meet exactly; the
+door strips form T-junctions with the room floors, without gaps).  Outer walls
+are single-sided quads facing in, one per room side (``outer_south_j`` at
+z = 0, ``outer_north_j``, ``outer_west_i`` at x = 0, ``outer_east_i``);
+interior walls are boxes with their faces outward, minus the faces hidden
+against floor, ceiling, outer walls and wall junctions:
 ``wall_h_i_j`` (along X, between rooms (i-1, j) and (i, j)) and ``wall_v_i_j``
 (along Z, between (i, j-1) and (i, j)).  Each has one door (gap from the floor
 to ``door_height``, jambs, and a ``lintel_*`` above) at a seeded random
@@ -131,10 +137,13 @@ def office_floor(
     w.material("ceiling", (0.80, 0.80, 0.80))
     w.material("light", (0.80, 0.80, 0.80), ke=light_exitance)
 
-    w.begin("floor", "floor")
-    w.add_rect(1, 0.0, (0.0, 0.0), (width, depth), 1)
-    w.begin("ceiling", "ceiling")
-    w.add_rect(1, height, (0.0, 0.0), (width, depth), -1)
+    for i in range(rows):  # floor and ceiling per room, never under/over a wall
+        for j in range(cols):
+            x0, z0, x1, z1 = room_rect(i, j, room, wall)
+            w.begin(f"room_{i}_{j}_floor", "floor")
+            w.add_rect(1, 0.0, (x0, z0), (x1, z1), 1)
+            w.begin(f"room_{i}_{j}_ceiling", "ceiling")
+            w.add_rect(1, height, (x0, z0), (x1, z1), -1)
     for j in range(cols):
         x0, _, x1, _ = room_rect(0, j, room, wall)
         w.begin(f"outer_south_{j}", "wall")
@@ -160,6 +169,9 @@ def office_floor(
         c = round(float(rng.uniform(lo, s[1] - (lo - s[0]))), 2)
         door = (c - 0.5 * door_width, c + 0.5 * door_width)
         _wall(w, f"{kind}_{i}_{j}", along, s, t, door, height, door_height)
+        w.begin(f"door_{kind}_{i}_{j}_floor", "floor")  # floor of the doorway, jamb to jamb
+        f0, f1 = _p(along, door[0], 0.0, t[0]), _p(along, door[1], 0.0, t[1])
+        w.add_rect(1, 0.0, (f0[0], f0[2]), (f1[0], f1[2]), 1)
         a = (door[0] - 0.2, door[1] + 0.2)
         b = (t[0] - _CLEAR, t[1] + _CLEAR)
         keep_out.append((a[0], b[0], a[1], b[1]) if along == 0 else (b[0], a[0], b[1], a[1]))

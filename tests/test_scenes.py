@@ -265,6 +265,115 @@ def test_office_closed(tmp_path, rows, cols, seed):
             assert dist[0] > 0.5 + 0.12 + 0.9, name
 
 
+def footprint(t):
+    """(x0, z0, x1, z1) bounding rectangle of triangles, seen from above."""
+    pts = t.reshape(-1, 3)
+    return (pts[:, 0].min(), pts[:, 2].min(), pts[:, 0].max(), pts[:, 2].max())
+
+
+def tri_area(t):
+    return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+
+
+def tri_enters_rect(tri, rect, eps=1e-9):
+    """True if the triangle, seen from above, has a point strictly inside the open
+    rectangle (x0, z0, x1, z1) (separating-axis test on the xz projection)."""
+    poly = [np.array([x0, z0]) for x0, z0 in ((rect[0], rect[1]), (rect[2], rect[1]),
+                                               (rect[2], rect[3]), (rect[0], rect[3]))]
+    t2 = tri[:, [0, 2]]
+    axes = [np.array([1.0, 0.0]), np.array([0.0, 1.0])]
+    axes += [np.array([-e[1], e[0]]) for e in (t2[1] - t2[0], t2[2] - t2[1], t2[0] - t2[2])]
+    for ax in axes:
+        ax = ax / np.linalg.norm(ax)
+        a, b = t2 @ ax, np.array(poly) @ ax
+        if a.max() <= b.min() + eps or b.max() <= a.min() + eps:
+            return False  # separated (touching edges do not count)
+    return True
+
+
+@pytest.mark.parametrize("kw", [dict(rows=2, cols=3, seed=0), dict(rows=3, cols=2, seed=7),
+                                dict(rows=1, cols=1, seed=1),
+                                dict(rows=3, cols=3, seed=4, room=3.3, wall=0.2, door_width=1.0)])
+def test_office_floor_ceiling_split(tmp_path, kw):
+    """Floors and ceilings are per room (+ doorway strips): nothing under/over a wall."""
+    rows, cols = kw["rows"], kw["cols"]
+    room, wall, dw = kw.get("room", 4.0), kw.get("wall", 0.12), kw.get("door_width", 0.9)
+    height = 2.8
+    path = office_floor(tmp_path, **kw)
+    objs, _ = common_checks(path)
+    flat = {n: t for n, (m, t) in objs.items() if m in ("floor", "ceiling")}
+    assert "floor" not in objs and "ceiling" not in objs  # no building-wide quads any more
+    walls = sorted(n[len("wall_"):] for n in objs if n.startswith("wall_"))
+    rooms = [(i, j) for i in range(rows) for j in range(cols)]
+    expected = {f"room_{i}_{j}_{s}" for i, j in rooms for s in ("floor", "ceiling")}
+    expected |= {f"door_{w}_floor" for w in walls}
+    assert set(flat) == expected
+    assert len(walls) == rows * (cols - 1) + (rows - 1) * cols
+    # each room: its own floor (+Y, y = 0) and ceiling (-Y, y = height) covering exactly its free area
+    for i, j in rooms:
+        rect = room_rect(i, j, room, wall)
+        for s, y, up in (("floor", 0.0, 1), ("ceiling", height, -1)):
+            t = flat[f"room_{i}_{j}_{s}"]
+            assert objs[f"room_{i}_{j}_{s}"][0] == s
+            assert np.allclose(t[..., 1], y) and np.allclose(normals(t), up * UP)
+            assert np.allclose(footprint(t), rect, atol=1e-9)
+            assert math.isclose(tri_area(t), room * room, rel_tol=1e-9)
+    # each doorway: a floor strip (door width x wall thickness) exactly under the lintel,
+    # whose underside is the doorway's ceiling; its long edges are the adjacent rooms' edges
+    for wname in walls:
+        kind, i, j = wname.split("_")
+        i, j = int(i), int(j)
+        t = flat[f"door_{wname}_floor"]
+        assert objs[f"door_{wname}_floor"][0] == "floor"
+        assert np.allclose(t[..., 1], 0.0) and np.allclose(normals(t), UP)
+        assert math.isclose(tri_area(t), dw * wall, rel_tol=1e-9)
+        fp = footprint(t)
+        lintel = objs[f"lintel_{wname}"][1]
+        under = lintel[np.all(np.isclose(lintel[..., 1], 2.1), axis=1)]
+        assert np.allclose(normals(under), -UP) and np.allclose(footprint(under), fp, atol=1e-9)
+        ra, rb = room_rect(i - (kind == "h"), j - (kind == "v"), room, wall), room_rect(i, j, room, wall)
+        if kind == "h":  # between rooms (i-1, j) and (i, j), along X
+            assert math.isclose(fp[1], ra[3], abs_tol=1e-9) and math.isclose(fp[3], rb[1], abs_tol=1e-9)
+            assert rb[0] < fp[0] < fp[2] < rb[2] and math.isclose(fp[2] - fp[0], dw)
+        else:
+            assert math.isclose(fp[0], ra[2], abs_tol=1e-9) and math.isclose(fp[2], rb[0], abs_tol=1e-9)
+            assert rb[1] < fp[1] < fp[3] < rb[3] and math.isclose(fp[3] - fp[1], dw)
+    # no floor/ceiling triangle has a point strictly inside an interior wall's solid footprint
+    # (wall box minus its door opening) or a wall junction, and the pieces do not overlap
+    solid = []
+    for wname in walls:
+        wx0, wz0, wx1, wz1 = footprint(objs[f"wall_{wname}"][1])
+        lx0, lz0, lx1, lz1 = footprint(objs[f"lintel_{wname}"][1])
+        if wname.startswith("h"):
+            solid += [(wx0, wz0, lx0, wz1), (lx1, wz0, wx1, wz1)]
+        else:
+            solid += [(wx0, wz0, wx1, lz0), (wx0, lz1, wx1, wz1)]
+    p_ = room + wall
+    solid += [(j * p_ - wall, i * p_ - wall, j * p_, i * p_) for i in range(1, rows) for j in range(1, cols)]
+    pieces = {n: footprint(t) for n, t in flat.items() if not n.endswith("_ceiling")}
+    for name, t in flat.items():
+        for tri in t:
+            for rect in solid:
+                assert not tri_enters_rect(tri, rect), (name, rect)
+            for other, rect in pieces.items():
+                if other != name and other != name.replace("_ceiling", "_floor"):
+                    assert not tri_enters_rect(tri, rect), (name, other)
+    # rays from inside each doorway (between the jambs, under the lintel) all hit a front face
+    if not walls:
+        return
+    tri = all_tris(objs)
+    rng = np.random.default_rng(5)
+    fps = np.array([footprint(flat[f"door_{w}_floor"]) for w in walls])
+    f = fps[rng.integers(len(fps), size=400)]
+    pts = np.column_stack([rng.uniform(f[:, 0] + 1e-3, f[:, 2] - 1e-3), rng.uniform(0.02, 2.08, 400),
+                           rng.uniform(f[:, 1] + 1e-3, f[:, 3] - 1e-3)])
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    _, idx = first_hits(tri, pts, d)
+    assert np.all(idx >= 0), "ray escaped through a doorway"
+    assert np.all(np.einsum("ij,ij->i", d, normals(tri[idx])) < 0), "hit a back face"
+
+
 def test_office_lit_fraction_and_validation(tmp_path):
     objs = read_obj(office_floor(tmp_path, lit_fraction=0.0))
     assert len({n.rsplit("_", 1)[0] for n in objs if n.startswith("light_")}) == 1
