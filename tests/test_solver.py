@@ -211,3 +211,22 @@ def test_flipped_normals_warning_names_the_object():
     warn = s.warnings()
     assert warn and "receiver" in warn[0] and "flipped" in warn[0]
     assert s.ledger.closure() < 1e-12
+
+
+@pytest.mark.parametrize("rho", [0.5, 0.9])
+def test_builtin_furnace_file_meets_the_identity(tmp_path, rho):
+    """Same identity through the OBJ/MTL path: scenes.furnace_box -> load_scene -> patches."""
+    import scenes
+    from dcrad.scene import load_scene
+
+    tol = 2e-3
+    path = scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)
+    scene = load_scene(path)
+    p = scene.patches(0.15)
+    s = Solver(p, SolverConfig(tol=tol, seed=11))
+    s.run()
+    expected = scenes.furnace.furnace_expected(rho, 1.0, 3.0, 0.2)["mean_b_minus_e"]
+    mean_reflected = ((p.radiosity - p.emission) * p.area[:, None]).sum(axis=0) / p.area.sum()
+    assert np.allclose(p.rho, rho, rtol=0, atol=0)  # Kd survives the file exactly
+    assert np.all(np.abs(mean_reflected - expected) <= (tol + 2e-4) * np.asarray(expected))
+    assert s.ledger.closure() < 1e-12
