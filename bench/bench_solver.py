@@ -51,12 +51,13 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", type=int, default=2)
     ap.add_argument("--cols", type=int, default=3)
     ap.add_argument("--tol", type=float, default=0.01)
+    ap.add_argument("--patch-size", type=float, default=0.0, help="max patch edge in m (default: automatic)")
     ap.add_argument("--profile", action="store_true")
     args = ap.parse_args(argv)
 
     with tempfile.TemporaryDirectory() as tmp:
         path = scenes.write_builtin("office", Path(tmp), rows=args.rows, cols=args.cols)
-        scene, patches, size = prepare(path)
+        scene, patches, size = prepare(path, args.patch_size or None)
     print(f"office floor {args.rows}x{args.cols}: {len(scene.faces)} input triangles, "
           f"{len(patches)} patches (edge <= {size:.3f} m)")
 
