@@ -5,6 +5,10 @@ Every watt emitted is, at any moment, in exactly one place::
     emitted = absorbed + unshot (patches) + in_flight (twin buffers)
               + escaped + back_faces
 
+A subscene's own books also carry what crossed its boundaries:
+``emitted + imported = ... + exported``; over a whole job imports and exports
+cancel.
+
 The solver moves power between these accounts in float64; ``closure()``
 reports how far the books are from balancing (round-off only).
 """
@@ -16,6 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["Ledger", "rms_error"]
+
+
+ACCOUNTS = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported")
 
 
 def _zeros() -> np.ndarray:
@@ -32,17 +39,19 @@ class Ledger:
     back_faces: np.ndarray = field(default_factory=_zeros)  #: W, rays that hit a back face
     unshot: np.ndarray = field(default_factory=_zeros)  #: W, sum of dB * A over patches
     in_flight: np.ndarray = field(default_factory=_zeros)  #: W, power held in twin buffers
+    imported: np.ndarray = field(default_factory=_zeros)  #: W, received from neighbours (subscenes)
+    exported: np.ndarray = field(default_factory=_zeros)  #: W, handed to neighbours (subscenes)
 
     def accounted(self) -> np.ndarray:
-        """(3,) W: everything the books say is somewhere."""
-        return self.absorbed + self.unshot + self.in_flight + self.escaped + self.back_faces
+        """(3,) W: everything the books say is somewhere (or was handed on)."""
+        return self.absorbed + self.unshot + self.in_flight + self.escaped + self.back_faces + self.exported
 
     def closure(self) -> float:
-        """Relative imbalance |emitted - accounted| / emitted (0 when nothing is emitted)."""
-        total = float(self.emitted.sum())
+        """Relative imbalance |emitted + imported - accounted| / (emitted + imported)."""
+        total = float((self.emitted + self.imported).sum())
         if total <= 0.0:
             return float(np.abs(self.accounted()).sum())
-        return float(np.abs(self.emitted - self.accounted()).sum() / total)
+        return float(np.abs(self.emitted + self.imported - self.accounted()).sum() / total)
 
     def residual(self) -> float:
         """Share of the emitted power not yet settled: (unshot + in flight) / emitted."""
@@ -52,7 +61,7 @@ class Ledger:
         return float((self.unshot.sum() + self.in_flight.sum()) / total)
 
     def __iadd__(self, other: "Ledger") -> "Ledger":
-        for name in ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight"):
+        for name in ACCOUNTS:
             setattr(self, name, getattr(self, name) + getattr(other, name))
         return self
 
@@ -60,14 +69,7 @@ class Ledger:
         return Ledger(**{k: np.array(v, np.float64) for k, v in self.as_arrays().items()})
 
     def as_arrays(self) -> dict:
-        return {
-            "emitted": self.emitted,
-            "absorbed": self.absorbed,
-            "escaped": self.escaped,
-            "back_faces": self.back_faces,
-            "unshot": self.unshot,
-            "in_flight": self.in_flight,
-        }
+        return {name: getattr(self, name) for name in ACCOUNTS}
 
     def as_dict(self) -> dict:
         """JSON-ready: every account as [r, g, b] W, plus closure and residual."""
