@@ -1,0 +1,476 @@
+"""subDivideScene: split the scene's box into k axis-aligned cells (van Liere, 1.3).
+
+Automatic partitions are a k-d tree built top-down (:func:`split_planes`): a
+cell that must become k cells is split into ``k_lo = k // 2`` and ``k - k_lo``
+(both orders tried when k is odd), so k need not be a power of two.  Candidate
+planes on all three axes get ``score = openness + balance * 2|w_lo/W - k_lo/k|``
+(lower is better; for k = 2 the balance term is ``|w_lo - w_hi| / W``), where
+``w_lo/W`` is the share of the cell's work below the plane (work = patch area,
+or ``work="count"`` for patch count; a patch counts on its centroid's side).
+
+Openness is the share of jittered grid points (about ``samples**2``) on the
+plane's rectangle, within the cell and the scene bounds, that are in open
+space: from each point a ray goes along +n and one along -n, and the point is
+solid when both nearest hits are back faces closer than ``solid_depth`` (2 % of
+the diagonal): it is inside a wall.  A plane inside an interior wall is open
+only at its doorways; a plane across a room is open almost everywhere.
+
+Candidates on an axis: ``candidates`` even positions between the 25 % and 75 %
+work quantiles, plus the midpoints between consecutive distinct coordinates of
+surfaces perpendicular to the axis in that range (wall centres, which an even
+grid steps over).  No plane is placed within ``1e-4 * diagonal`` of a surface
+lying in (or nearly in) it: such offsets move to the nearest free position.
+
+Explicit partitions: ``planes`` form a grid (each splits every cell it
+crosses); ``boxes`` must tile a box that contains the scene.  To reproduce an
+automatic k-d partition, pass its cells as boxes.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .config import TOL
+from .errors import PartitionError
+from .patches import Patches, triangle_areas
+from .rays import MISS, Tracer
+
+__all__ = ["Cell", "Face", "Partition", "split_planes", "partition", "clip", "faces_between",
+           "openness"]
+
+AXES = "xyz"
+_NUDGE = 1e-4  # planes stay this fraction of the diagonal away from coplanar surfaces
+_PAD = 1e-3  # the root box is the scene bounds enlarged by this fraction of the diagonal
+
+
+@dataclass(frozen=True)
+class Cell:
+    """An axis-aligned box ``lo`` .. ``hi`` (metres)."""
+
+    id: int
+    lo: tuple
+    hi: tuple
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(m,) bool: points inside the closed box."""
+        p = np.asarray(points, np.float64)
+        return np.all((p >= self.lo) & (p <= self.hi), axis=-1)
+
+
+@dataclass(frozen=True)
+class Face:
+    """The shared face of two adjacent cells: a rectangle on the plane
+    ``x[axis] = offset`` spanning ``lo`` .. ``hi`` in axes
+    ``((axis + 1) % 3, (axis + 2) % 3)``; ``side_a`` is the cell below the
+    plane, ``side_b`` the one above (the boundary normal points from A to B)."""
+
+    axis: int
+    offset: float
+    lo: tuple
+    hi: tuple
+    side_a: int
+    side_b: int
+
+    @property
+    def area(self) -> float:
+        return float((self.hi[0] - self.lo[0]) * (self.hi[1] - self.lo[1]))
+
+
+@dataclass
+class Partition:
+    """Cells, the boundaries between them, the planes made and why."""
+
+    cells: list
+    faces: list
+    planes: list
+    log: list = field(default_factory=list)
+    work: list = field(default_factory=list)  # per cell, in the unit of ``work_unit``
+    work_unit: str = "m^2"
+
+    def locate(self, points: np.ndarray) -> np.ndarray:
+        """(m,) int64 id of the first cell (in list order) containing each point, -1 if none."""
+        out = np.full(len(points), -1, np.int64)
+        for c in self.cells[::-1]:
+            out[c.contains(points)] = c.id
+        return out
+
+    def as_dict(self) -> dict:
+        return {"k": len(self.cells), "cells": [asdict(c) for c in self.cells],
+                "faces": [{**asdict(f), "area": f.area} for f in self.faces],
+                "planes": [{"axis": AXES[a], "offset": float(o)} for a, o in self.planes],
+                "work": [float(w) for w in self.work], "work_unit": self.work_unit,
+                "log": list(self.log)}
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def _work(patches: Patches, work: str) -> np.ndarray:
+    if work not in ("area", "count"):
+        raise PartitionError(f"unknown work measure {work!r}: use 'area' or 'count'")
+    return patches.area if work == "area" else np.ones(len(patches))
+
+
+def _root_box(patches: Patches) -> tuple[np.ndarray, np.ndarray]:
+    pad = _PAD * patches.scale
+    return patches.bounds[0] - pad, patches.bounds[1] + pad
+
+
+def _forbidden(patches: Patches, axis: int, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Merged intervals of offsets within ``eps`` of a patch thinner than eps along ``axis``."""
+    c = patches.triangles[:, :, axis]
+    mn, mx = c.min(axis=1), c.max(axis=1)
+    thin = (mx - mn) < eps
+    order = np.argsort(mn[thin])
+    lo, hi = mn[thin][order] - eps, mx[thin][order] + eps
+    if not len(lo):
+        return lo, hi
+    idx = np.flatnonzero(np.concatenate([[True], lo[1:] > np.maximum.accumulate(hi)[:-1]]))
+    return lo[idx], np.maximum.reduceat(hi, idx)
+
+
+def _nudge(offsets, forbidden) -> np.ndarray:
+    """Move offsets lying in a forbidden interval to its nearer end (ties go up)."""
+    off = np.array(offsets, np.float64, ndmin=1)
+    flo, fhi = forbidden
+    if not len(flo):
+        return off
+    i = np.searchsorted(flo, off, side="right") - 1
+    j = np.maximum(i, 0)
+    inside = (i >= 0) & (off < fhi[j])
+    down = (off - flo[j]) < (fhi[j] - off)
+    return np.where(inside, np.where(down, flo[j], fhi[j]), off)
+
+
+def _openness(tracer, normals, axis, offsets, lo, hi, samples, depth, rng) -> np.ndarray:
+    """(C,) share of jittered grid points on each plane ``x[axis] = offset``
+    within box lo..hi that are not inside solid (see the module docstring)."""
+    u, v = (axis + 1) % 3, (axis + 2) % 3
+    eu, ev = max(hi[u] - lo[u], 1e-12), max(hi[v] - lo[v], 1e-12)
+    nu = int(np.clip(round(samples * np.sqrt(eu / ev)), 2, 4 * samples))
+    nv = int(np.clip(round(samples * samples / nu), 2, 4 * samples))
+    gu, gv = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
+    pu = lo[u] + (gu.ravel() + rng.random(nu * nv)) / nu * (hi[u] - lo[u])
+    pv = lo[v] + (gv.ravel() + rng.random(nu * nv)) / nv * (hi[v] - lo[v])
+    c, g = len(offsets), nu * nv
+    org = np.empty((c, g, 3))
+    org[:, :, axis] = np.asarray(offsets)[:, None]
+    org[:, :, u], org[:, :, v] = pu, pv
+    org = org.reshape(-1, 3)
+    blocked = np.ones(len(org), bool)
+    for sign in (1.0, -1.0):
+        d = np.zeros_like(org)
+        d[:, axis] = sign
+        prim, t = tracer.intersect(org, d)
+        hit = prim != MISS
+        back = np.zeros(len(org), bool)
+        back[hit] = normals[prim[hit], axis] * sign > 0
+        blocked &= hit & (t < depth) & back
+    return 1.0 - blocked.reshape(c, g).mean(axis=1)
+
+
+def openness(patches: Patches, axis: int, offsets, box=None, samples: int = 24,
+             solid_depth: float = 0.02, rng_seed=0) -> np.ndarray:
+    """(C,) openness of the planes ``x[axis] = offset`` within ``box`` = (lo, hi)
+    (default: the scene bounds); ``solid_depth`` is a fraction of the diagonal."""
+    lo, hi = patches.bounds if box is None else (np.maximum(box[0], patches.bounds[0]),
+                                                   np.minimum(box[1], patches.bounds[1]))
+    return _openness(Tracer(patches.triangles), patches.normal, axis, np.array(offsets, np.float64, ndmin=1),
+                     lo, hi, samples, solid_depth * patches.scale, np.random.default_rng(rng_seed))
+
+
+def _fmt_box(lo, hi) -> str:
+    return "[" + ", ".join(f"{a:.3f}..{b:.3f}" for a, b in zip(lo, hi)) + "]"
+
+
+# -- automatic k-d split --------------------------------------------------------------------
+def _kd_split(patches, k, candidates=33, balance=1.0, rng_seed=0, work="area",
+              samples=24, solid_depth=0.02):
+    """Cells (list of (lo, hi)), planes and log of the automatic k-d tree."""
+    if k < 1:
+        raise PartitionError(f"k={k}: need at least one cell")
+    if len(patches) == 0:
+        raise PartitionError("cannot partition an empty scene")
+    eps, depth = _NUDGE * patches.scale, solid_depth * patches.scale
+    w_all, cent, normals, tri = _work(patches, work), patches.centroid, patches.normal, patches.triangles
+    forb = [_forbidden(patches, a, eps) for a in range(3)]
+    thin = [np.ptp(tri[:, :, a], axis=1) < eps for a in range(3)]
+    tracer = Tracer(tri) if k > 1 else None
+    rng = np.random.default_rng(rng_seed)
+    blo, bhi = patches.bounds
+    cells, planes, log = [], [], []
+
+    def best_split(lo, hi, kk):
+        inside = np.all((cent >= lo) & (cent < hi), axis=1)
+        w, total = w_all[inside], w_all[inside].sum()
+        splits = [kk // 2] if kk % 2 == 0 else [kk // 2, kk - kk // 2]
+        rlo, rhi = np.maximum(lo, blo), np.minimum(hi, bhi)
+        found = []
+        for a in range(3):
+            if total <= 0 or hi[a] - lo[a] <= 4 * eps:
+                continue
+            order = np.argsort(cent[inside, a])
+            xs, cw = cent[inside, a][order], np.cumsum(w[order])
+            q25, q75 = np.interp([0.25 * total, 0.75 * total], cw, xs)
+            cand = [np.linspace(q25, q75, candidates)]
+            s = np.sort(cent[inside & thin[a], a])
+            s = s[np.concatenate([[True], np.diff(s) > eps])] if len(s) else s
+            if len(s) > 1:
+                gap, mid = np.diff(s), 0.5 * (s[1:] + s[:-1])
+                keep = (mid >= q25) & (mid <= q75)  # thinnest gaps (walls) first
+                cand.append(mid[keep][np.argsort(gap[keep], kind="stable")[: 2 * candidates]])
+            off = np.unique(_nudge(np.concatenate(cand), forb[a]))
+            off = off[(off > lo[a] + eps) & (off < hi[a] - eps)]
+            if not len(off):
+                continue
+            op = _openness(tracer, normals, a, off, rlo, rhi, samples, depth, rng)
+            frac = np.interp(off, xs, cw, left=0.0, right=total) / total
+            imb = np.array([2 * np.abs(frac - s_ / kk) for s_ in splits])
+            score = op + balance * imb.min(axis=0)
+            i = int(np.argmin(score))
+            found.append((score[i], a, off[i], op[i], frac[i], splits[imb[:, i].argmin()], len(off)))
+        return found, total
+
+    def split(lo, hi, kk):
+        if kk == 1:
+            cells.append((lo, hi))
+            return
+        found, total = best_split(lo, hi, kk)
+        if not found:  # no work or no room for candidates: halve the longest side
+            a = int(np.argmax(hi - lo))
+            off = float(_nudge([0.5 * (lo[a] + hi[a])], forb[a])[0])
+            if not lo[a] + eps < off < hi[a] - eps:
+                raise PartitionError(f"cell {_fmt_box(lo, hi)} is too small to split into {kk} cells")
+            k_lo, why = kk // 2, "no candidate plane with work on both sides: halved the longest side"
+        else:
+            found.sort(key=lambda f: f[0])
+            score, a, off, op, frac, k_lo, n = found[0]
+            others = "; ".join(f"{AXES[f[1]]}={f[2]:.4f} score {f[0]:.3f}" for f in found[1:])
+            why = (f"openness {op:.3f} (share of the plane in open space), work below "
+                   f"{frac:.3f} of {total:.4g} for target {k_lo}/{kk}, score {score:.3f} "
+                   f"(best of {n} on {AXES[a]}); best on other axes: {others or 'none'}")
+        planes.append((a, float(off)))
+        log.append(f"plane {len(planes)}: {AXES[a]}={off:.4f} splits cell {_fmt_box(lo, hi)} "
+                   f"into {k_lo}+{kk - k_lo}: {why}")
+        mid_hi, mid_lo = hi.copy(), lo.copy()
+        mid_hi[a] = mid_lo[a] = off
+        split(lo, mid_hi, k_lo)
+        split(mid_lo, hi, kk - k_lo)
+
+    lo, hi = _root_box(patches)
+    split(lo, hi, int(k))
+    return cells, planes, log
+
+
+def split_planes(patches: Patches, k: int, candidates: int = 33, balance: float = 1.0,
+                 rng_seed=0, **kw) -> list[tuple[int, float]]:
+    """The (axis, offset) planes of the automatic k-d tree, in the order made
+    (pre-order: a plane, then the planes of its low side, then its high side).
+    Keywords: ``work`` ("area" | "count"), ``samples`` (openness grid side),
+    ``solid_depth`` (fraction of the diagonal).  See the module docstring."""
+    return _kd_split(patches, k, candidates, balance, rng_seed, **kw)[1]
+
+
+# -- explicit partitions ----------------------------------------------------------------------
+def _grid_boxes(patches, planes, log):
+    lo, hi = _root_box(patches)
+    eps = _NUDGE * patches.scale
+    cuts, out = [[], [], []], []
+    for a, off in planes:
+        if a not in (0, 1, 2) or not np.isfinite(off):
+            raise PartitionError(f"plane ({a!r}, {off!r}): axis must be 0, 1 or 2 and offset finite")
+        new = float(_nudge([off], _forbidden(patches, a, eps))[0])
+        if not lo[a] + eps < new < hi[a] - eps:
+            raise PartitionError(f"plane {AXES[a]}={off} lies outside the scene box "
+                                 f"{_fmt_box(lo, hi)} (or on its edge)")
+        if new != off:
+            log.append(f"plane {AXES[a]}={off} nudged to {new:.6f}: a surface lies in that plane")
+        cuts[a].append(new)
+        out.append((a, new))
+    edges = [np.unique(np.concatenate([[lo[a]], cuts[a], [hi[a]]])) for a in range(3)]
+    boxes = [(np.array([edges[0][i], edges[1][j], edges[2][m]]),
+              np.array([edges[0][i + 1], edges[1][j + 1], edges[2][m + 1]]))
+             for i, j, m in itertools.product(*(range(len(e) - 1) for e in edges))]
+    return boxes, out
+
+
+def _check_boxes(patches, boxes, log):
+    """Validate that ``boxes`` tile a box containing the scene; nudge interior coordinates."""
+    try:
+        lo = np.array([np.asarray(b[0], np.float64).reshape(3) for b in boxes])
+        hi = np.array([np.asarray(b[1], np.float64).reshape(3) for b in boxes])
+    except (ValueError, TypeError, IndexError) as exc:
+        raise PartitionError(f"boxes must be a list of (lo, hi) 3-vectors: {exc}") from None
+    bad = ~(np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1) & (hi > lo).all(axis=1))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise PartitionError(f"box {i} {_fmt_box(lo[i], hi[i])}: need finite lo < hi on every axis")
+    hlo, hhi = lo.min(axis=0), hi.max(axis=0)
+    tol = 1e-9 * max(float(np.linalg.norm(hhi - hlo)), patches.scale)
+    if (patches.bounds[0] < hlo - tol).any() or (patches.bounds[1] > hhi + tol).any():
+        raise PartitionError(f"boxes cover {_fmt_box(hlo, hhi)} but the scene spans "
+                             f"{_fmt_box(*patches.bounds)}")
+    inter = np.clip(np.minimum(hi[:, None], hi[None]) - np.maximum(lo[:, None], lo[None]), 0, None).prod(2)
+    vol = (hi - lo).prod(axis=1)
+    np.fill_diagonal(inter, 0.0)
+    i, j = np.unravel_index(np.argmax(inter), inter.shape)
+    if inter[i, j] > 1e-9 * vol.sum():
+        raise PartitionError(f"box {i} {_fmt_box(lo[i], hi[i])} and box {j} {_fmt_box(lo[j], hi[j])} "
+                             f"overlap (volume {inter[i, j]:.6g} m^3)")
+    cells = [Cell(n, tuple(lo[n]), tuple(hi[n])) for n in range(len(boxes))]
+    faces = faces_between(cells, tol)
+    for n, a, side in itertools.product(range(len(cells)), range(3), (0, 1)):
+        at = (lo, hi)[side][n, a]
+        if abs(at - (hlo, hhi)[side][a]) <= tol:
+            continue
+        u, v = (a + 1) % 3, (a + 2) % 3
+        need = (hi[n, u] - lo[n, u]) * (hi[n, v] - lo[n, v])
+        got = sum(f.area for f in faces if f.axis == a and (f.side_a, f.side_b)[1 - side] == n)
+        if got < need * (1 - 1e-9):
+            raise PartitionError(f"box {n} {_fmt_box(lo[n], hi[n])}: its {'-+'[side]}{AXES[a]} side at "
+                                 f"{AXES[a]}={at:.6g} is only {got / need:.1%} covered by other boxes; "
+                                 f"the boxes leave a gap")
+    if abs(vol.sum() - (hhi - hlo).prod()) > 1e-9 * vol.sum():
+        raise PartitionError(f"box volumes sum to {vol.sum():.6g} m^3 but their hull "
+                             f"{_fmt_box(hlo, hhi)} holds {(hhi - hlo).prod():.6g}: gap")
+    eps = _NUDGE * patches.scale
+    planes = []
+    for a in range(3):  # nudge every interior coordinate the same way in all boxes
+        forb = _forbidden(patches, a, eps)
+        for x in np.unique(np.concatenate([lo[:, a], hi[:, a]])):
+            if abs(x - hlo[a]) <= tol or abs(x - hhi[a]) <= tol:
+                continue
+            new = float(_nudge([x], forb)[0])
+            if new != x:
+                log.append(f"box faces at {AXES[a]}={x} nudged to {new:.6f}: a surface lies there")
+                lo[lo[:, a] == x, a], hi[hi[:, a] == x, a] = new, new
+            planes.append((a, new))
+    return list(zip(lo, hi)), planes
+
+
+def faces_between(cells, tol: float | None = None) -> list[Face]:
+    """Shared faces of adjacent boxes: for every pair whose boxes touch on a
+    plane (``a.hi == b.lo`` on an axis, within ``tol``, default 1e-9 times the
+    hull diagonal) and whose rectangles overlap with positive area."""
+    if len(cells) < 2:
+        return []
+    lo, hi = (np.array([getattr(c, n) for c in cells], np.float64) for n in ("lo", "hi"))
+    ids = [c.id for c in cells]
+    if tol is None:
+        tol = 1e-9 * max(float(np.linalg.norm(hi.max(axis=0) - lo.min(axis=0))), 1e-30)
+    out = []
+    for a in range(3):
+        u, v = (a + 1) % 3, (a + 2) % 3
+        olo = np.maximum(lo[:, None, [u, v]], lo[None, :, [u, v]])
+        ohi = np.minimum(hi[:, None, [u, v]], hi[None, :, [u, v]])
+        touch = (np.abs(hi[:, None, a] - lo[None, :, a]) <= tol) & np.all(ohi - olo > tol, axis=2)
+        for i, j in zip(*np.nonzero(touch)):
+            out.append(Face(a, float(0.5 * (hi[i, a] + lo[j, a])), tuple(map(float, olo[i, j])),
+                            tuple(map(float, ohi[i, j])), ids[i], ids[j]))
+    return out
+
+
+def partition(patches: Patches, k: int | None = None, planes=None, boxes=None, **kw) -> Partition:
+    """Split the scene into cells.
+
+    automatic (planes and boxes None): a k-d tree of ``k`` cells, see
+        :func:`split_planes` (``**kw`` go there).
+    ``planes``: list of (axis, offset); a grid, each plane splits every cell it
+        crosses (so k = product over axes of (planes on the axis + 1)); k is ignored.
+    ``boxes``: list of (lo, hi) that must tile a box containing the scene
+        (no overlap, no gap; else PartitionError naming the box); k is ignored.
+    """
+    log: list[str] = []
+    if boxes is not None:
+        if planes is not None:
+            raise PartitionError("give planes or boxes, not both")
+        box_list, made = _check_boxes(patches, boxes, log)
+        log.insert(0, f"explicit boxes: {len(box_list)} cells")
+    elif planes is not None:
+        box_list, made = _grid_boxes(patches, planes, log)
+        log.insert(0, f"explicit planes (grid): {len(box_list)} cells")
+    else:
+        if k is None:
+            raise PartitionError("automatic partition needs k")
+        box_list, made, log = _kd_split(patches, int(k), **kw)
+    cells = [Cell(i, tuple(map(float, lo)), tuple(map(float, hi))) for i, (lo, hi) in enumerate(box_list)]
+    w_all = _work(patches, kw.get("work", "area"))
+    part = Partition(cells, faces_between(cells), made, log)
+    part.work = np.bincount(part.locate(patches.centroid) + 1, w_all, len(cells) + 1)[1:].tolist()
+    part.work_unit = "m^2" if kw.get("work", "area") == "area" else "patches"
+    return part
+
+
+# -- clipping -------------------------------------------------------------------------------------
+def _clip_plane(P, cnt, axis, sign, off):
+    """Sutherland-Hodgman against the half space sign * (x[axis] - off) >= 0,
+    for n convex polygons at once: P (n, m, 3), cnt (n,) vertex counts."""
+    n, m = P.shape[:2]
+    idx = np.arange(m)[None]
+    valid = idx < cnt[:, None]
+    nxt = np.where(idx + 1 < cnt[:, None], idx + 1, 0)
+    Q = np.take_along_axis(P, nxt[..., None], axis=1)
+    d, dq = sign * (P[..., axis] - off), sign * (Q[..., axis] - off)
+    keep = valid & (d >= 0)
+    cross = valid & ((d >= 0) != (dq >= 0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(cross, d / (d - dq), 0.0)
+    X = P + s[..., None] * (Q - P)
+    X[..., axis] = off  # exactly on the plane
+    pts = np.stack([P, X], axis=2).reshape(n, 2 * m, 3)
+    mask = np.stack([keep, cross], axis=2).reshape(n, 2 * m)
+    new = mask.sum(axis=1)
+    R = np.zeros((n, max(m, int(new.max(initial=0))), 3))
+    rows, cols = np.nonzero(mask)
+    R[rows, (np.cumsum(mask, axis=1) - 1)[rows, cols]] = pts[rows, cols]
+    return R, new
+
+
+def clip(patches: Patches, part: Partition) -> list[tuple[Patches, np.ndarray]]:
+    """Per cell: its patches and ``parent`` (m,) int64 rows of the input table.
+
+    Triangles inside a cell are kept as they are (sharing input vertices);
+    triangles crossing its box are clipped (Sutherland-Hodgman against the six
+    box planes) and fan-triangulated.  Pieces below the degenerate area are
+    dropped.  Each piece copies rho, emission, source, obj, radiosity and
+    unshot (per-area values) from its parent, so area and emitted power are
+    conserved to round-off.  Rows are in parent order.
+    """
+    tri = patches.triangles
+    tmin, tmax = tri.min(axis=1), tri.max(axis=1)
+    min_area = TOL.degenerate_area * patches.scale ** 2
+    out = []
+    for c in part.cells:
+        lo, hi = np.asarray(c.lo), np.asarray(c.hi)
+        inside = np.all((tmin >= lo) & (tmax <= hi), axis=1)
+        cut = np.flatnonzero(np.all((tmax >= lo) & (tmin <= hi), axis=1) & ~inside)
+        P = np.zeros((len(cut), 9, 3))
+        P[:, :3] = tri[cut]
+        cnt = np.full(len(cut), 3)
+        for a in range(3):
+            P, cnt = _clip_plane(P, cnt, a, 1.0, lo[a])
+            P, cnt = _clip_plane(P, cnt, a, -1.0, hi[a])
+        pieces, owner = [], []
+        for j in range(1, P.shape[1] - 1):  # fan (0, j, j + 1)
+            ok = j + 1 < cnt
+            pieces.append(np.stack([P[ok, 0], P[ok, j], P[ok, j + 1]], axis=1))
+            owner.append(cut[ok])
+        pieces = np.concatenate(pieces) if pieces else np.zeros((0, 3, 3))
+        owner = np.concatenate(owner).astype(np.int64) if owner else np.zeros(0, np.int64)
+        big = triangle_areas(pieces) > min_area
+        pieces, owner = pieces[big], owner[big]
+        keep = np.flatnonzero(inside)
+        used, vidx = np.unique(patches.faces[keep], return_inverse=True)
+        pv, pinv = np.unique(pieces.reshape(-1, 3), axis=0, return_inverse=True)
+        verts = np.concatenate([patches.vertices[used], pv])
+        faces = np.concatenate([vidx.reshape(-1, 3), len(used) + pinv.reshape(-1, 3)])
+        parent = np.concatenate([keep, owner])
+        order = np.argsort(parent, kind="stable")
+        parent, faces = parent[order], faces[order]
+        out.append((Patches(
+            vertices=verts, faces=faces, rho=patches.rho[parent], emission=patches.emission[parent],
+            source=patches.source[parent], obj=patches.obj[parent], names=patches.names,
+            radiosity=patches.radiosity[parent].copy(), unshot=patches.unshot[parent].copy(),
+        ), parent))
+    return out
