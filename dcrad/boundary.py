@@ -29,7 +29,7 @@ import numpy as np
 from .errors import ExchangeError, PartitionError
 from .sampling import concentric_disk, concentric_disk_inverse
 
-__all__ = ["Boundary", "make_boundary", "TwinBuffer", "transfer", "KEY_LIMIT"]
+__all__ = ["Boundary", "make_boundary", "TwinBuffer", "transfer", "RayParcel", "transfer_rays", "KEY_LIMIT"]
 
 KEY_LIMIT = np.iinfo(np.int64).max  # packed keys must stay <= this
 
@@ -410,4 +410,84 @@ def transfer(incoming: dict[int, TwinBuffer], boundaries: list[Boundary]) -> dic
     scale = sum((np.abs(b.power).sum(axis=0) for b in incoming.values() if len(b)), np.zeros(ch))
     if np.any(np.abs(moved - recorded) > 1e-12 * scale + 1e-300):
         raise ExchangeError(f"transfer lost power: recorded {recorded}, moved {moved}")
+    return out
+
+
+class RayParcel:
+    """Exact forwarding: crossing rays kept whole (no angular or spatial blur).
+
+    boundary (m,) i8, origins (m,3) f8 on the plane, dirs (m,3) f8 unit, power (m,3) f8 W.
+    Memory grows with the rays: 64 bytes each.
+    """
+
+    def __init__(self, boundary=None, origins=None, dirs=None, power=None):
+        self.boundary = np.zeros(0, np.int64) if boundary is None else np.asarray(boundary, np.int64)
+        self.origins = np.zeros((0, 3)) if origins is None else np.asarray(origins, np.float64)
+        self.dirs = np.zeros((0, 3)) if dirs is None else np.asarray(dirs, np.float64)
+        self.power = np.zeros((0, 3)) if power is None else np.asarray(power, np.float64)
+
+    def __len__(self) -> int:
+        return len(self.boundary)
+
+    def total(self) -> np.ndarray:
+        return self.power.sum(axis=0) if len(self) else np.zeros(3)
+
+    def nbytes(self) -> int:
+        return int(self.boundary.nbytes + self.origins.nbytes + self.dirs.nbytes + self.power.nbytes)
+
+    def add(self, boundary, origins, dirs, power) -> None:
+        self.merge(RayParcel(np.broadcast_to(boundary, (len(origins),)), origins, dirs, power))
+
+    def merge(self, other: "RayParcel") -> None:
+        if len(other) == 0:
+            return
+        self.boundary = np.concatenate([self.boundary, other.boundary])
+        self.origins = np.concatenate([self.origins, other.origins])
+        self.dirs = np.concatenate([self.dirs, other.dirs])
+        self.power = np.concatenate([self.power, other.power])
+
+    def take(self, index) -> "RayParcel":
+        """Remove the rays at ``index`` (positions) and return them."""
+        keep = np.ones(len(self), bool)
+        keep[index] = False
+        out = RayParcel(self.boundary[index], self.origins[index], self.dirs[index], self.power[index])
+        self.boundary, self.origins = self.boundary[keep], self.origins[keep]
+        self.dirs, self.power = self.dirs[keep], self.power[keep]
+        return out
+
+    def drain(self) -> "RayParcel":
+        return self.take(np.arange(len(self)))
+
+    def to_arrays(self) -> dict:
+        return {"boundary": self.boundary, "origins": self.origins, "dirs": self.dirs, "power": self.power}
+
+    @classmethod
+    def from_arrays(cls, d: dict) -> "RayParcel":
+        return cls(d["boundary"], d["origins"], d["dirs"], d["power"])
+
+
+def transfer_rays(incoming: dict, boundaries: list) -> dict:
+    """Route recorded crossing rays to the cell on the far side of their boundary."""
+    by_id = {b.id: b for b in boundaries}
+    out = {}
+    for b in boundaries:
+        out.setdefault(b.side_a, RayParcel())
+        out.setdefault(b.side_b, RayParcel())
+    moved = np.zeros(3)
+    recorded = np.zeros(3)
+    for cell, parcel in incoming.items():
+        recorded += parcel.total()
+        for bid in np.unique(parcel.boundary):
+            if int(bid) not in by_id:
+                raise ExchangeError(f"ray parcel from cell {cell} names unknown boundary {int(bid)}")
+            b = by_id[int(bid)]
+            if cell not in (b.side_a, b.side_b):
+                raise ExchangeError(f"cell {cell} sent rays through boundary {b.id}, which it does not touch")
+            dest = b.side_b if cell == b.side_a else b.side_a
+            sel = np.flatnonzero(parcel.boundary == bid)
+            part = RayParcel(parcel.boundary[sel], parcel.origins[sel], parcel.dirs[sel], parcel.power[sel])
+            out[dest].merge(part)
+            moved += part.total()
+    if np.abs(moved - recorded).sum() > 1e-12 * max(np.abs(recorded).sum(), 1e-300):
+        raise ExchangeError(f"ray transfer lost power: moved {moved}, recorded {recorded}")
     return out

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .boundary import Boundary, TwinBuffer, transfer
+from .boundary import Boundary, RayParcel, TwinBuffer, transfer, transfer_rays
 from .config import SolverConfig
 from .energy import ACCOUNTS, Ledger
 from .patches import Patches
@@ -75,7 +75,7 @@ class Subscene(Solver):
     """
 
     def __init__(self, cell: int, patches: Patches, boundaries: list[Boundary], config: SolverConfig,
-                 power_per_ray: float):
+                 power_per_ray: float, mode: str = "binned"):
         tri = [patches.triangles] + [b.triangles() for b in boundaries]
         super().__init__(patches, config, tracer=Tracer(np.concatenate(tri)))
         self.cell = cell
@@ -86,6 +86,14 @@ class Subscene(Solver):
         mb = max((b.n_bins for b in boundaries), default=1)
         self.sent = TwinBuffer(mc, mb)  #: recorded crossings, handed over at the barrier
         self.pending = TwinBuffer(mc, mb)  #: power received from neighbours, still to shoot here
+        self.mode = mode  #: "binned" (the paper's twins) or "exact" (forward whole rays)
+        if mode == "exact":
+            self.sent = RayParcel()
+            self.forward = RayParcel()  #: rays from neighbours, continued here unchanged
+        elif mode != "binned":
+            from .errors import ConfigError
+
+            raise ConfigError(f"boundary mode must be 'binned' or 'exact', not {mode!r}")
         self._offset = ray_offset(patches) if len(patches) else 1e-6
         self._by_id = {b.id: i for i, b in enumerate(self.boundaries)}
 
@@ -130,7 +138,42 @@ class Subscene(Solver):
         per_ray = np.repeat(power / counts[:, None], counts, axis=0)
         return RayBatch(origins=origins, dirs=dirs, power=per_ray, shooter=owner)
 
+    def _in_flight(self) -> np.ndarray:
+        extra = self.forward.total() if self.mode == "exact" else 0.0
+        return self.sent.total() + self.pending.total() + extra
+
+    def step_forwarded(self) -> int:
+        """Exact mode: continue up to batch_rays rays handed over by neighbours."""
+        part = self.forward.take(np.arange(min(len(self.forward), self.config.batch_rays)))
+        side = np.ones(len(part))
+        for b in self.boundaries:
+            sel = part.boundary == b.id
+            side[sel] = np.where(part.dirs[sel] @ b.normal > 0, 1.0, -1.0)
+            part.origins[sel] += (self._offset * side[sel])[:, None] * b.normal[None, :]
+        batch = RayBatch(part.origins, part.dirs, part.power, np.zeros(len(part), np.int64))
+        t0 = time.perf_counter()
+        tally = trace(self.tracer, batch, self.patches)
+        self.stats.trace_seconds += time.perf_counter() - t0
+        self._commit(batch, tally)
+        self.stats.rays += len(batch)
+        self.stats.batches += 1
+        return len(batch)
+
+    def _commit(self, batch: RayBatch, tally) -> None:
+        p = self.patches
+        absorbed = deposit(p, tally.received)
+        misrouted = self.record_crossings(batch, tally)
+        led = self.ledger
+        led.absorbed = led.absorbed + absorbed
+        led.escaped = led.escaped + tally.escaped
+        led.back_faces = led.back_faces + tally.back_faces + misrouted
+        led.unshot = p.unshot_power
+        led.in_flight = self._in_flight()
+        self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
+
     def step(self) -> int:
+        if self.mode == "exact" and len(self.forward):
+            return self.step_forwarded()
         idx, counts, power = self.select_all()
         if len(idx) == 0:
             return 0
@@ -153,15 +196,7 @@ class Subscene(Solver):
         p.unshot[idx[is_patch]] = 0.0
         if len(twin_idx):
             self.pending.take(twin_idx)
-        absorbed = deposit(p, tally.received)
-        misrouted = self.record_crossings(batch, tally)
-        led = self.ledger
-        led.absorbed = led.absorbed + absorbed
-        led.escaped = led.escaped + tally.escaped
-        led.back_faces = led.back_faces + tally.back_faces + misrouted
-        led.unshot = p.unshot_power
-        led.in_flight = self.sent.total() + self.pending.total()
-        self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
+        self._commit(batch, tally)
         self.stats.shots += len(idx)
         self.stats.rays += len(batch)
         self.stats.batches += 1
@@ -190,7 +225,9 @@ class Subscene(Solver):
             ok = crossing == (0 if b.side_a == self.cell else 1)
             lost += batch.power[r[~ok]].sum(axis=0)
             r, d, pts = r[ok], d[ok], points[sel][ok]
-            if len(r):
+            if len(r) and self.mode == "exact":
+                self.sent.add(b.id, pts, d, batch.power[r])
+            elif len(r):
                 self.sent.add(np.full(len(r), b.id), crossing[ok], b.cell_of(pts), b.bin_of(d), batch.power[r])
         return lost
 
@@ -209,18 +246,19 @@ class Subscene(Solver):
         """Hand over what crossed the boundaries since the last barrier."""
         out = self.sent.drain()
         self.ledger.exported = self.ledger.exported + out.total()
-        self.ledger.in_flight = self.sent.total() + self.pending.total()
+        self.ledger.in_flight = self._in_flight()
         return out
 
-    def deliver(self, buffer: TwinBuffer) -> None:
-        """Accept outgoing power from neighbours (this cell is the receiving side)."""
+    def deliver(self, buffer) -> None:
+        """Accept outgoing power (TwinBuffer) or rays (RayParcel) from neighbours."""
         self.ledger.imported = self.ledger.imported + buffer.total()
-        self.pending.merge(buffer)
-        self.ledger.in_flight = self.sent.total() + self.pending.total()
+        (self.forward if isinstance(buffer, RayParcel) else self.pending).merge(buffer)
+        self.ledger.in_flight = self._in_flight()
 
     def state(self) -> SubsceneState:
+        held = [self.sent, self.pending] + ([self.forward] if self.mode == "exact" else [])
         return SubsceneState(self.cell, self.ledger.copy(), self.stats.shots, self.stats.rays,
-                             len(self.sent) + len(self.pending), self.sent.nbytes() + self.pending.nbytes())
+                             sum(len(h) for h in held), sum(h.nbytes() for h in held))
 
     def radiosity(self) -> np.ndarray:
         return self.patches.radiosity
@@ -311,9 +349,10 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
         list(executor.map(lambda h: h.iterate(iterations), handles))
         # transferEnergy at the barrier
         incoming = {h.cell: h.collect() for h in handles}
-        outgoing = transfer(incoming, boundaries)
+        exact = any(isinstance(v, RayParcel) for v in incoming.values())
+        outgoing = (transfer_rays if exact else transfer)(incoming, boundaries)
         for h in handles:
-            h.deliver(outgoing.get(h.cell, TwinBuffer(1, 1)))
+            h.deliver(outgoing.get(h.cell, RayParcel() if exact else TwinBuffer(1, 1)))
         run.barriers += 1
         led = barrier_snapshot([h.state() for h in handles])
         if on_barrier is not None:
@@ -337,6 +376,7 @@ class DivideConfig:
     iterations   int    batches per subscene between barriers            4
     solid        int    direction bins per side: SOLIDANGLES = solid^2   8
     cell_size    float  portal cell edge (m); 0: 1/128 of the diagonal   0
+    mode         str    "binned" twins (the paper) or "exact" rays      binned
     ===========  =====  ===============================================  =======
     """
 
@@ -344,11 +384,13 @@ class DivideConfig:
     iterations: int = 4
     solid: int = 8
     cell_size: float = 0.0
+    mode: str = "binned"
 
     def __post_init__(self):
         from .errors import ConfigError
 
-        if self.subscenes < 1 or self.iterations < 1 or self.solid < 1 or self.cell_size < 0:
+        if (self.subscenes < 1 or self.iterations < 1 or self.solid < 1 or self.cell_size < 0
+                or self.mode not in ("binned", "exact")):
             raise ConfigError(f"invalid divide setting: {self}")
 
 
@@ -366,16 +408,24 @@ def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig
     # starts anywhere in its cell, and the part of a cell inside a wall loses it
     # to back faces (0.6 m cells: 24% too dark behind a doorway; 0.05 m: 3%).
     cell_size = divide.cell_size or patches.scale / 128.0
-    boundaries = [
-        make_boundary(i, f.axis, f.offset, f.lo, f.hi, f.side_a, f.side_b, cell_size, divide.solid)
-        for i, f in enumerate(part.faces)
-    ]
+    # Boundary rectangles stop at the scene's box: no ray can leave the box and come
+    # back, and portal cells reaching past the outer walls would re-emit light outside
+    boundaries = []
+    lo_box, hi_box = patches.bounds
+    for i, f in enumerate(part.faces):
+        u, v = (f.axis + 1) % 3, (f.axis + 2) % 3
+        lo = (max(f.lo[0], lo_box[u]), max(f.lo[1], lo_box[v]))
+        hi = (min(f.hi[0], hi_box[u]), min(f.hi[1], hi_box[v]))
+        if hi[0] <= lo[0] or hi[1] <= lo[1]:
+            continue
+        boundaries.append(make_boundary(len(boundaries), f.axis, f.offset, lo, hi, f.side_a, f.side_b,
+                                        cell_size, divide.solid))
     emitted = float(patches.emitted_power.sum())
     per_ray = emitted / config.rays_per_power if emitted > 0 else 1.0
     subs = []
     for cell, (sub, _) in zip(part.cells, pieces):
         touching = [b for b in boundaries if cell.id in (b.side_a, b.side_b)]
-        subs.append(Subscene(cell.id, sub, touching, config, per_ray))
+        subs.append(Subscene(cell.id, sub, touching, config, per_ray, divide.mode))
     return subs, boundaries, [par for _, par in pieces], part
 
 

@@ -59,7 +59,8 @@ def test_divided_matches_unsplit_within_noise(office, reference):
     assert err < 1.5 * noise, (err, noise)
 
 
-def test_dark_room_lit_only_through_the_doorway(tmp_path):
+@pytest.mark.parametrize("mode,tol", [("binned", 0.1), ("exact", 0.05)])
+def test_dark_room_lit_only_through_the_doorway(tmp_path, mode, tol):
     """Two rooms, light only in one: the dark room's light crosses the boundary, and matches unsplit."""
     path = scenes.write_builtin("office", tmp_path, rows=1, cols=2, lit_fraction=0.01, seed=3)
     scene, p, _ = prepare(path)
@@ -75,11 +76,39 @@ def test_dark_room_lit_only_through_the_doorway(tmp_path):
 
     _, q, _ = prepare(path)
     run, subs, boundaries, part = solve_divided(q, SolverConfig(tol=1e-3, rays_per_power=1e6, seed=5),
-                                               DivideConfig(subscenes=2))
+                                               DivideConfig(subscenes=2, mode=mode))
     assert part.planes and part.planes[0][0] == 0  # split along x, through the wall between the rooms
     dark_div = np.average(q.radiosity[dark & floor, 1], weights=q.area[dark & floor])
     assert dark_ref > 0 and dark_div > 0
-    assert abs(dark_div - dark_ref) < 0.1 * dark_ref, (dark_div, dark_ref)
+    # binned twins blur light over portal cells, part of which lies inside the wall
+    # (lost to back faces, a few %); exact forwarding has no blur: noise only
+    assert abs(dark_div - dark_ref) < tol * dark_ref, (dark_div, dark_ref)
     # the dark subscene emits nothing: all its light was imported through the boundary
     dark_cell = [s for s in subs if s.ledger.emitted.sum() == 0]
     assert len(dark_cell) == 1 and dark_cell[0].ledger.imported.sum() > 0
+
+
+@pytest.mark.parametrize("mode", ["binned", "exact"])
+def test_boundary_across_an_empty_box(tmp_path, mode):
+    """A plane across open space: same converged solution as unsplit, within noise + binning."""
+    path = scenes.write_builtin("furnace", tmp_path, rho=0.6, emission=5.0)
+    _, ref, _ = prepare(path, 0.08)
+    Solver(ref, SolverConfig(tol=1e-3, rays_per_power=2e6, seed=1)).run()
+    _, seq, _ = prepare(path, 0.08)
+    Solver(seq, SolverConfig(tol=1e-3, seed=2)).run()
+    _, div, _ = prepare(path, 0.08)
+    run, subs, boundaries, part = solve_divided(div, SolverConfig(tol=1e-3, seed=2),
+                                               DivideConfig(subscenes=2, mode=mode))
+    assert len(boundaries) == 1 and max(run.barrier_closures) < 1e-12
+    noise = rms_error(seq.radiosity, ref.radiosity, ref.area)
+    err = rms_error(div.radiosity, ref.radiosity, ref.area)
+    # 8x8 bins of pi/64 sr projected each and portal cells of 1/128 of the diagonal:
+    # the angular blur of one crossing is far below the Monte Carlo noise here
+    assert err < 1.5 * noise, (err, noise)
+    # the closed-enclosure identity still holds: nothing is lost at the boundary
+    mean = ((div.radiosity - div.emission) * div.area[:, None]).sum(axis=0) / div.area.sum()
+    expect = 0.6 * div.emitted_power / (0.4 * div.area.sum())
+    led = run.ledger
+    lost = (led.back_faces.sum() + led.escaped.sum()) / led.emitted.sum()
+    assert lost < 1e-3  # boundaries end at the walls: re-emitted light starts inside
+    assert np.all(np.abs(mean - expect) / expect < led.residual() + lost + 1e-9)
