@@ -38,6 +38,10 @@ def _solver_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--patch-size", type=float, default=0.0,
                    help="largest patch edge in metres (default: 1/40 of the scene diagonal)")
     p.add_argument("--scale", type=float, default=1.0, help="multiply scene coordinates by this (unit conversion to metres)")
+    p.add_argument("--subscenes", type=int, default=1, help="split into k subscenes (1: no partition, no twins)")
+    p.add_argument("--boundary", choices=("binned", "exact"), default="binned",
+                   help="boundary mode: the paper's binned twins, or exact ray forwarding")
+    p.add_argument("--iterations", type=int, default=4, help="batches per subscene between barriers")
 
 
 def _config(args) -> SolverConfig:
@@ -77,9 +81,12 @@ def cmd_solve(args) -> int:
     try:
         with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
             path = resolve_scene(args.scene, out / "scene" if not Path(args.scene).exists() else Path(tmp))
+            from .divide import DivideConfig
+
+            divide = DivideConfig(subscenes=args.subscenes, mode=args.boundary, iterations=args.iterations)
             report = solve_to(path, out, config, patch_size=args.patch_size, scale=args.scale,
                               on_progress=on_progress, should_stop=stop.should_stop,
-                              width=args.width, height=args.height)
+                              width=args.width, height=args.height, divide=divide)
     finally:
         signal.signal(signal.SIGINT, previous)
     bar.update(report["residual"], report["stats"]["rays"], report["stats"]["wall_seconds"], 0.0, final=True)

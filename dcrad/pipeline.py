@@ -100,6 +100,23 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     return written
 
 
+class _DividedView:
+    """What the progress bar reads, for a divided run."""
+
+    def __init__(self, run, solver):
+        self._run, self.stats = run, solver.stats
+        self.stats.rays = run.snapshots[-1].rays
+
+    def residual(self):
+        return self._run.snapshots[-1].residual
+
+    def elapsed(self):
+        return self._run.snapshots[-1].time
+
+    def eta(self):
+        return float("nan")
+
+
 def solve_to(
     path,
     out: Path,
@@ -110,8 +127,13 @@ def solve_to(
     should_stop=None,
     width: int = 640,
     height: int = 480,
+    divide=None,
 ) -> dict:
-    """Load, solve and write everything to ``out``; return the report dict."""
+    """Load, solve and write everything to ``out``; return the report dict.
+
+    ``divide`` (a DivideConfig) with more than one subscene solves divided, in
+    process; one subscene (the default) uses the plain solver: no partition, no twins.
+    """
     config = config or SolverConfig()
     out = Path(out)
     t0 = time.perf_counter()
@@ -121,7 +143,20 @@ def solve_to(
     t0 = time.perf_counter()
     solver = Solver(patches, config)
     t_build = time.perf_counter() - t0
-    solver.run(on_progress=on_progress, should_stop=should_stop)
+    divided = None
+    if divide is not None and divide.subscenes > 1:
+        from .divide import solve_divided
+
+        progress = (lambda run: on_progress(_DividedView(run, solver))) if on_progress else None
+        run, subs, boundaries, part = solve_divided(patches, config, divide, on_barrier=progress,
+                                                   should_stop=should_stop)
+        solver.adopt_divided(run, sum(s.stats.trace_seconds for s in subs))
+        divided = {"subscenes": len(subs), "boundaries": len(boundaries), "barriers": run.barriers,
+                   "mode": divide.mode, "iterations": divide.iterations, "solid": divide.solid,
+                   "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
+                   "partition": part.as_dict()}
+    else:
+        solver.run(on_progress=on_progress, should_stop=should_stop)
 
     t0 = time.perf_counter()
     warnings = list(scene.warnings) + solver.warnings()
@@ -132,6 +167,7 @@ def solve_to(
     timings = {"load_and_mesh_s": t_load, "embree_build_s": t_build,
                "solve_s": solver.stats.wall_seconds, "outputs_s": t_out}
     report = run_report(scene, solver, settings, timings, warnings, outputs)
+    report["divided"] = divided
     write_json(out / "report.json", report)
     for w in warnings:
         log.warning(w)

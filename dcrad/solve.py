@@ -179,6 +179,16 @@ class Solver:
         self.stats.wall_seconds = self.elapsed()
         return self.stats
 
+    def adopt_divided(self, run, trace_seconds: float = 0.0) -> None:
+        """Take over a divided run's ledger, counters and snapshots (B already in patches)."""
+        self.ledger = run.ledger
+        self.snapshots = list(run.snapshots)
+        self.snapshot_B = list(run.snapshot_B)
+        last = run.snapshots[-1]
+        self.stats.shots, self.stats.rays, self.stats.batches = last.shots, last.rays, run.barriers
+        self.stats.wall_seconds, self.stats.stopped_by = run.wall_seconds, run.stopped_by
+        self.stats.trace_seconds = float(trace_seconds)
+
     # == reporting =================================================================
     def eta(self) -> float:
         """Seconds to the tolerance, from the log-residual slope of recent snapshots (nan if unknown)."""

@@ -161,3 +161,18 @@ def test_ctrl_c_stops_cleanly_and_writes_results(tmp_path):
     assert report["stats"]["stopped_by"] == "stopped"
     assert report["ledger"]["closure"] < 1e-9
     assert (out / "preview.png").exists() and (out / "radiosity.npz").exists()
+
+
+@pytest.mark.parametrize("mode", ["binned", "exact"])
+def test_solve_divided_from_the_command_line(tmp_path, mode):
+    out = tmp_path / "out"
+    r = run("solve", "office", "--subscenes", "2", "--boundary", mode, "--out", out, "--tol", "0.05",
+            "--width", "80", "--height", "60")
+    assert r.returncode == 0, r.stderr
+    report = json.loads((out / "report.json").read_text())
+    div = report["divided"]
+    assert div["subscenes"] == 2 and div["mode"] == mode and div["barriers"] >= 1
+    assert div["max_barrier_closure"] < 1e-12 and report["ledger"]["closure"] < 1e-12
+    assert report["residual"] <= 0.05
+    npz = np.load(out / "radiosity.npz")
+    assert np.all(np.isfinite(npz["B"])) and npz["B"].max() > 0
