@@ -100,6 +100,35 @@ def cmd_solve(args) -> int:
     return 0
 
 
+def _k_list(text: str) -> tuple[int, ...]:
+    try:
+        ks = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a comma-separated list of integers") from None
+    if not ks or min(ks) < 1:
+        raise argparse.ArgumentTypeError(f"'{text}': subscene counts must be integers >= 1")
+    return ks
+
+
+def cmd_compare(args) -> int:
+    from .compare import compare, summary_lines, write_compare
+    from .pipeline import resolve_scene
+
+    out = Path(args.out)
+    config = SolverConfig(seed=args.seed, tol=args.tol, rays_per_power=args.rays_per_power)
+    path = resolve_scene(args.scene, out / "scene")
+    result = compare(path, args.subscenes, config, mode=args.boundary, reference=args.reference,
+                     patch_size=args.patch_size or None, iterations=args.iterations)
+    files = write_compare(result, out)
+    ref = result["reference"]
+    print(f"dcrad: {result['scene']['name']}, {result['scene']['patches']} patches; B*: {ref['source']}"
+          f" (RMS {ref['rms_W_m2']:.4g} W/m^2)")
+    for line in summary_lines(result):
+        print(line)
+    print(f"dcrad: wrote {', '.join(f.name for f in files.values())} in {out}")
+    return 0
+
+
 def cmd_scenes(args) -> int:
     import scenes
 
@@ -131,6 +160,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("name", nargs="?", help="built-in scene to write")
     p.add_argument("--out", default=".", help="folder to write it into")
     p.set_defaults(func=cmd_scenes)
+
+    p = sub.add_parser("compare", help="RMS error against time and iterations: sequential vs k subscenes "
+                                       "(the paper's Figure 3), as JSON, CSV, PNG and SVG")
+    p.add_argument("scene", help="a scene file or a built-in scene (e.g. office:rows=1,cols=2)")
+    p.add_argument("--subscenes", type=_k_list, default=(1, 2, 4, 8),
+                   help="comma-separated subscene counts k (default 1,2,4,8; 1 is always included)")
+    p.add_argument("--boundary", choices=("binned", "exact"), default="binned", help="boundary mode of divided runs")
+    p.add_argument("--iterations", type=int, default=4, help="batches per subscene between barriers")
+    p.add_argument("--out", default="compare", help="output folder (default ./compare)")
+    p.add_argument("--reference", default=None,
+                   help="radiosity.npz from 'dcrad solve' to use as B* (default: a converged sequential run "
+                        "with 10x the rays per power)")
+    d = SolverConfig()
+    p.add_argument("--tol", type=float, default=d.tol, help=f"residual tolerance of every run (default {d.tol})")
+    p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
+    p.add_argument("--patch-size", type=float, default=0.0,
+                   help="largest patch edge in metres (default: 1/40 of the scene diagonal)")
+    p.add_argument("--rays-per-power", type=float, default=d.rays_per_power,
+                   help=f"rays for shooting the emitted power once (default {d.rays_per_power:g})")
+    p.set_defaults(func=cmd_compare)
     return ap
 
 
