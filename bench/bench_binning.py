@@ -1,0 +1,65 @@
+"""Error analysis the paper left qualitative: converged divided vs converged unsplit,
+as SOLIDANGLES and portal cell size vary, for both boundary modes.
+
+Prints figures; asserts nothing.  Run: ``.venv/bin/python bench/bench_binning.py``.
+Scene: a two-room office floor (1x2) split in two through the wall (k=2), one lit room.
+Every run converges to tol 1e-3 with 1e6 rays per unit of emitted power.  The noise
+floor is the same comparison between two unsplit runs with different seeds.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+import scenes
+from dcrad.config import SolverConfig
+from dcrad.divide import DivideConfig, solve_divided
+from dcrad.energy import rms_error
+from dcrad.pipeline import prepare
+from dcrad.solve import Solver
+
+
+def main() -> int:
+    path = scenes.write_builtin("office", Path(tempfile.mkdtemp()), rows=1, cols=2, lit_fraction=0.01, seed=3)
+    cfg = dict(tol=1e-3, rays_per_power=1e6)
+    _, ref, _ = prepare(path)
+    Solver(ref, SolverConfig(seed=1, **cfg)).run()
+    _, other, _ = prepare(path)
+    Solver(other, SolverConfig(seed=2, **cfg)).run()
+    scale = float(np.sqrt(np.dot((ref.radiosity ** 2).mean(axis=1), ref.area) / ref.area.sum()))
+    lamps = ref.emission.sum(axis=1) > 0
+    mid = 0.5 * (ref.bounds[0, 0] + ref.bounds[1, 0])
+    lit_left = ref.centroid[lamps, 0].mean() < mid
+    dark = (ref.centroid[:, 0] > mid) if lit_left else (ref.centroid[:, 0] < mid)
+
+    def errors(b):
+        all_ = rms_error(b, ref.radiosity, ref.area) / scale
+        d = rms_error(b[dark], ref.radiosity[dark], ref.area[dark]) / scale
+        mean_dark = np.average(b[dark].mean(axis=1), weights=ref.area[dark])
+        return all_, d, mean_dark
+
+    ref_dark = np.average(ref.radiosity[dark].mean(axis=1), weights=ref.area[dark])
+    n_all, n_dark, m = errors(other.radiosity)
+    print(f"two-room office, {len(ref)} patches, diagonal {ref.scale:.2f} m; dark-room mean B* {ref_dark:.5f}")
+    print(f"{'mode':>7} {'solid':>5} {'cell m':>7} {'nRMS all':>9} {'nRMS dark':>9} {'dark mean/B*':>12} {'lost %':>7} {'twin MB':>8}")
+    print(f"{'unsplit':>7} {'-':>5} {'-':>7} {n_all:9.4f} {n_dark:9.4f} {m / ref_dark:12.4f} {'':>7} {'':>8}   (noise floor: another seed)")
+    diag = ref.scale
+    for mode, solid, div in ([("binned", s, d) for d in (16, 64, 128, 256) for s in (2, 4, 8, 16)]
+                             + [("exact", 8, 128)]):
+        _, p, _ = prepare(path)
+        run, subs, b, part = solve_divided(p, SolverConfig(seed=2, **cfg),
+                                           DivideConfig(subscenes=2, mode=mode, solid=solid, cell_size=diag / div))
+        a, d, m = errors(p.radiosity)
+        led = run.ledger
+        lost = 100 * (led.back_faces.sum() + led.escaped.sum()) / led.emitted.sum()
+        cell = "-" if mode == "exact" else f"{diag / div:.3f}"
+        print(f"{mode:>7} {solid if mode == 'binned' else '-':>5} {cell:>7} {a:9.4f} {d:9.4f} {m / ref_dark:12.4f} {lost:7.2f} {run.max_twin_bytes / 1e6:8.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
