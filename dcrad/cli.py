@@ -42,6 +42,22 @@ def _solver_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--boundary", choices=("binned", "exact"), default="binned",
                    help="boundary mode: the paper's binned twins, or exact ray forwarding")
     p.add_argument("--iterations", type=int, default=4, help="batches per subscene between barriers")
+    p.add_argument("--planes", default="", help="explicit partition planes, e.g. x=4.06,z=4.06 (each splits "
+                                                "every cell it crosses; overrides --subscenes)")
+
+
+def parse_planes(text: str) -> list[tuple[int, float]]:
+    """``"x=4.06,z=3"`` -> [(0, 4.06), (2, 3.0)]; a bad item raises ConfigError naming it."""
+    from .errors import ConfigError
+
+    planes = []
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        axis, _, value = item.partition("=")
+        try:
+            planes.append(("xyz".index(axis.strip().lower()), float(value)))
+        except ValueError:
+            raise ConfigError(f"--planes: '{item}' is not axis=offset with axis x, y or z") from None
+    return planes
 
 
 def _config(args) -> SolverConfig:
@@ -83,10 +99,12 @@ def cmd_solve(args) -> int:
             path = resolve_scene(args.scene, out / "scene" if not Path(args.scene).exists() else Path(tmp))
             from .divide import DivideConfig
 
-            divide = DivideConfig(subscenes=args.subscenes, mode=args.boundary, iterations=args.iterations)
+            planes = parse_planes(args.planes)
+            k = max(args.subscenes, 2) if planes else args.subscenes
+            divide = DivideConfig(subscenes=k, mode=args.boundary, iterations=args.iterations)
             report = solve_to(path, out, config, patch_size=args.patch_size, scale=args.scale,
                               on_progress=on_progress, should_stop=stop.should_stop,
-                              width=args.width, height=args.height, divide=divide)
+                              width=args.width, height=args.height, divide=divide, planes=planes or None)
     finally:
         signal.signal(signal.SIGINT, previous)
     bar.update(report["residual"], report["stats"]["rays"], report["stats"]["wall_seconds"], 0.0, final=True)

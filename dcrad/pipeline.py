@@ -128,6 +128,7 @@ def solve_to(
     width: int = 640,
     height: int = 480,
     divide=None,
+    planes=None,
 ) -> dict:
     """Load, solve and write everything to ``out``; return the report dict.
 
@@ -148,8 +149,8 @@ def solve_to(
         from .divide import solve_divided
 
         progress = (lambda run: on_progress(_DividedView(run, solver))) if on_progress else None
-        run, subs, boundaries, part = solve_divided(patches, config, divide, on_barrier=progress,
-                                                   should_stop=should_stop)
+        run, subs, boundaries, part = solve_divided(patches, config, divide, planes=planes,
+                                                   on_barrier=progress, should_stop=should_stop)
         solver.adopt_divided(run, sum(s.stats.trace_seconds for s in subs))
         divided = {"subscenes": len(subs), "boundaries": len(boundaries), "barriers": run.barriers,
                    "mode": divide.mode, "iterations": divide.iterations, "solid": divide.solid,

@@ -176,3 +176,17 @@ def test_solve_divided_from_the_command_line(tmp_path, mode):
     assert report["residual"] <= 0.05
     npz = np.load(out / "radiosity.npz")
     assert np.all(np.isfinite(npz["B"])) and npz["B"].max() > 0
+
+
+def test_explicit_planes_on_the_command_line(tmp_path):
+    out = tmp_path / "out"
+    # the 2x3 office: a wall spans x in [4.00, 4.12] and another z in [4.00, 4.12]
+    r = run("solve", "office", "--planes", "x=4.06,z=4.06", "--out", out, "--tol", "0.05",
+            "--width", "80", "--height", "60")
+    assert r.returncode == 0, r.stderr
+    div = json.loads((out / "report.json").read_text())["divided"]
+    assert div["subscenes"] == 4 and div["max_barrier_closure"] < 1e-12
+    planes = {(p["axis"], round(p["offset"], 3)) for p in div["partition"]["planes"]}
+    assert planes == {("x", 4.06), ("z", 4.06)}
+    bad = run("solve", "office", "--planes", "w=3", "--out", tmp_path / "bad")
+    assert bad.returncode == 2 and "'w=3'" in bad.stderr and "Traceback" not in bad.stderr
