@@ -4,7 +4,7 @@ VENV  ?= .venv
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test bench clean proto
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -28,3 +28,7 @@ bench: install
 
 clean:
 	rm -rf out build dist *.egg-info test-artifacts
+
+## regenerate the gRPC/protobuf code from proto/ (committed; a test checks it is fresh)
+proto: install
+	$(BIN)/python -m grpc_tools.protoc -I proto --python_out=. --grpc_python_out=. --pyi_out=. proto/dcrad/v1/dcrad.proto

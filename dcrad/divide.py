@@ -36,7 +36,11 @@ from .sampling import lattice
 from .shoot import RayBatch, deposit, patch_rays, ray_offset, trace
 from .solve import Snapshot, Solver
 
-__all__ = ["Subscene", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor"]
+__all__ = [
+    "Subscene", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor", "DivideConfig",
+    "build_subscenes", "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene",
+    "boundaries_to_array", "boundaries_from_array",
+]
 
 
 class SequentialExecutor(Executor):
@@ -448,3 +452,82 @@ def solve_divided(patches: Patches, config: SolverConfig | None = None, divide: 
     patches.radiosity = assemble_B()
     patches.unshot = assemble(len(patches), patches.area, parents, pieces, [s.patches.unshot for s in subs])
     return run, subs, boundaries, part
+
+
+# == moving subscenes between processes (no networking here: plain arrays) ==========
+
+_BOUNDARY_COLUMNS = 12  # id, axis, offset, lo(2), hi(2), side_a, side_b, cells(2), solid
+
+
+def boundaries_to_array(boundaries: list[Boundary]) -> np.ndarray:
+    """(m, 12) float64 table of boundaries (integers are exact in float64)."""
+    rows = [[b.id, b.axis, b.offset, *b.lo, *b.hi, b.side_a, b.side_b, *b.cells, b.solid] for b in boundaries]
+    return np.array(rows, np.float64).reshape(-1, _BOUNDARY_COLUMNS)
+
+
+def boundaries_from_array(table: np.ndarray) -> list[Boundary]:
+    out = []
+    for r in np.asarray(table, np.float64).reshape(-1, _BOUNDARY_COLUMNS):
+        out.append(Boundary(id=int(r[0]), axis=int(r[1]), offset=float(r[2]), lo=(float(r[3]), float(r[4])),
+                            hi=(float(r[5]), float(r[6])), side_a=int(r[7]), side_b=int(r[8]),
+                            cells=(int(r[9]), int(r[10])), solid=int(r[11])))
+    return out
+
+
+def subscene_arrays(sub: Subscene) -> dict:
+    """What a worker needs to rebuild a subscene: its patches and boundaries."""
+    p = sub.patches
+    return {"vertices": p.vertices, "faces": p.faces, "rho": p.rho, "emission": p.emission,
+            "source": p.source, "obj": p.obj, "radiosity": p.radiosity, "unshot": p.unshot,
+            "boundaries": boundaries_to_array(sub.boundaries)}
+
+
+def checkpoint_arrays(sub: Subscene) -> dict:
+    """The state that changes while iterating, taken at a barrier (after deliver).
+
+    With the RNG state included, a subscene restored from this continues exactly
+    as the original would have.
+    """
+    import json
+
+    led = sub.ledger
+    buf = sub.forward if sub.mode == "exact" else sub.pending
+    held = {f"pending_{k}": np.asarray(v) for k, v in buf.to_arrays().items()}
+    if sub.mode == "exact":
+        held.update({f"sent_{k}": np.asarray(v) for k, v in sub.sent.to_arrays().items()})
+    else:
+        held.update({f"sent_{k}": np.asarray(v) for k, v in sub.sent.to_arrays().items()})
+    rng = json.dumps(sub.rng.bit_generator.state).encode()
+    return {
+        "radiosity": sub.patches.radiosity, "unshot": sub.patches.unshot,
+        "ledger": np.stack([getattr(led, a) for a in ACCOUNTS]),
+        "stats": np.array([sub.stats.shots, sub.stats.rays, sub.stats.batches], np.int64),
+        "trace_seconds": np.array([sub.stats.trace_seconds]),
+        "back_by_obj": sub.back_by_obj,
+        "rng_state": np.frombuffer(rng, np.uint8),
+        **held,
+    }
+
+
+def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: str, names: list[str],
+                   arrays: dict) -> Subscene:
+    """Rebuild a subscene from ``subscene_arrays`` (plus ``checkpoint_arrays`` to resume)."""
+    import json
+
+    p = Patches(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
+                arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy())
+    sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode)
+    if "ledger" in arrays:  # resume from a checkpoint
+        for a, row in zip(ACCOUNTS, arrays["ledger"]):
+            setattr(sub.ledger, a, np.array(row, np.float64))
+        sub.stats.shots, sub.stats.rays, sub.stats.batches = (int(x) for x in arrays["stats"])
+        sub.stats.trace_seconds = float(arrays["trace_seconds"][0])
+        sub.back_by_obj = np.array(arrays["back_by_obj"], np.float64)
+        sub.rng.bit_generator.state = json.loads(bytes(arrays["rng_state"]).decode())
+        kind = RayParcel if mode == "exact" else TwinBuffer
+        for name in ("pending", "sent"):
+            part = {k[len(name) + 1:]: v for k, v in arrays.items() if k.startswith(name + "_")}
+            if part:
+                buf = kind.from_arrays(part)
+                setattr(sub, "forward" if (name == "pending" and mode == "exact") else name, buf)
+    return sub

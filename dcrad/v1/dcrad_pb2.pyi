@@ -1,0 +1,273 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class ArrayChunk(_message.Message):
+    __slots__ = ("name", "dtype", "shape", "offset", "total_bytes", "data")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    DTYPE_FIELD_NUMBER: _ClassVar[int]
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_BYTES_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    dtype: str
+    shape: _containers.RepeatedScalarFieldContainer[int]
+    offset: int
+    total_bytes: int
+    data: bytes
+    def __init__(self, name: _Optional[str] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., offset: _Optional[int] = ..., total_bytes: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
+
+class FileChunk(_message.Message):
+    __slots__ = ("path", "offset", "total_bytes", "data")
+    PATH_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_BYTES_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    path: str
+    offset: int
+    total_bytes: int
+    data: bytes
+    def __init__(self, path: _Optional[str] = ..., offset: _Optional[int] = ..., total_bytes: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
+
+class Ledger(_message.Message):
+    __slots__ = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported", "closure", "residual")
+    EMITTED_FIELD_NUMBER: _ClassVar[int]
+    ABSORBED_FIELD_NUMBER: _ClassVar[int]
+    ESCAPED_FIELD_NUMBER: _ClassVar[int]
+    BACK_FACES_FIELD_NUMBER: _ClassVar[int]
+    UNSHOT_FIELD_NUMBER: _ClassVar[int]
+    IN_FLIGHT_FIELD_NUMBER: _ClassVar[int]
+    IMPORTED_FIELD_NUMBER: _ClassVar[int]
+    EXPORTED_FIELD_NUMBER: _ClassVar[int]
+    CLOSURE_FIELD_NUMBER: _ClassVar[int]
+    RESIDUAL_FIELD_NUMBER: _ClassVar[int]
+    emitted: _containers.RepeatedScalarFieldContainer[float]
+    absorbed: _containers.RepeatedScalarFieldContainer[float]
+    escaped: _containers.RepeatedScalarFieldContainer[float]
+    back_faces: _containers.RepeatedScalarFieldContainer[float]
+    unshot: _containers.RepeatedScalarFieldContainer[float]
+    in_flight: _containers.RepeatedScalarFieldContainer[float]
+    imported: _containers.RepeatedScalarFieldContainer[float]
+    exported: _containers.RepeatedScalarFieldContainer[float]
+    closure: float
+    residual: float
+    def __init__(self, emitted: _Optional[_Iterable[float]] = ..., absorbed: _Optional[_Iterable[float]] = ..., escaped: _Optional[_Iterable[float]] = ..., back_faces: _Optional[_Iterable[float]] = ..., unshot: _Optional[_Iterable[float]] = ..., in_flight: _Optional[_Iterable[float]] = ..., imported: _Optional[_Iterable[float]] = ..., exported: _Optional[_Iterable[float]] = ..., closure: _Optional[float] = ..., residual: _Optional[float] = ...) -> None: ...
+
+class SolverSettings(_message.Message):
+    __slots__ = ("tol", "time_limit", "max_rays", "seed", "rays_per_power", "patch_size", "scale")
+    TOL_FIELD_NUMBER: _ClassVar[int]
+    TIME_LIMIT_FIELD_NUMBER: _ClassVar[int]
+    MAX_RAYS_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    RAYS_PER_POWER_FIELD_NUMBER: _ClassVar[int]
+    PATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
+    SCALE_FIELD_NUMBER: _ClassVar[int]
+    tol: float
+    time_limit: float
+    max_rays: int
+    seed: int
+    rays_per_power: float
+    patch_size: float
+    scale: float
+    def __init__(self, tol: _Optional[float] = ..., time_limit: _Optional[float] = ..., max_rays: _Optional[int] = ..., seed: _Optional[int] = ..., rays_per_power: _Optional[float] = ..., patch_size: _Optional[float] = ..., scale: _Optional[float] = ...) -> None: ...
+
+class DivideSettings(_message.Message):
+    __slots__ = ("subscenes", "iterations", "solid", "cell_size", "mode")
+    SUBSCENES_FIELD_NUMBER: _ClassVar[int]
+    ITERATIONS_FIELD_NUMBER: _ClassVar[int]
+    SOLID_FIELD_NUMBER: _ClassVar[int]
+    CELL_SIZE_FIELD_NUMBER: _ClassVar[int]
+    MODE_FIELD_NUMBER: _ClassVar[int]
+    subscenes: int
+    iterations: int
+    solid: int
+    cell_size: float
+    mode: str
+    def __init__(self, subscenes: _Optional[int] = ..., iterations: _Optional[int] = ..., solid: _Optional[int] = ..., cell_size: _Optional[float] = ..., mode: _Optional[str] = ...) -> None: ...
+
+class JobSpec(_message.Message):
+    __slots__ = ("scene", "solver", "divide")
+    SCENE_FIELD_NUMBER: _ClassVar[int]
+    SOLVER_FIELD_NUMBER: _ClassVar[int]
+    DIVIDE_FIELD_NUMBER: _ClassVar[int]
+    scene: str
+    solver: SolverSettings
+    divide: DivideSettings
+    def __init__(self, scene: _Optional[str] = ..., solver: _Optional[_Union[SolverSettings, _Mapping]] = ..., divide: _Optional[_Union[DivideSettings, _Mapping]] = ...) -> None: ...
+
+class SubmitRequest(_message.Message):
+    __slots__ = ("spec", "file")
+    SPEC_FIELD_NUMBER: _ClassVar[int]
+    FILE_FIELD_NUMBER: _ClassVar[int]
+    spec: JobSpec
+    file: FileChunk
+    def __init__(self, spec: _Optional[_Union[JobSpec, _Mapping]] = ..., file: _Optional[_Union[FileChunk, _Mapping]] = ...) -> None: ...
+
+class JobRef(_message.Message):
+    __slots__ = ("job_id",)
+    JOB_ID_FIELD_NUMBER: _ClassVar[int]
+    job_id: str
+    def __init__(self, job_id: _Optional[str] = ...) -> None: ...
+
+class JobSummary(_message.Message):
+    __slots__ = ("job_id", "state", "scene", "subscenes", "elapsed_s", "residual", "workers", "error")
+    JOB_ID_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
+    SUBSCENES_FIELD_NUMBER: _ClassVar[int]
+    ELAPSED_S_FIELD_NUMBER: _ClassVar[int]
+    RESIDUAL_FIELD_NUMBER: _ClassVar[int]
+    WORKERS_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    job_id: str
+    state: str
+    scene: str
+    subscenes: int
+    elapsed_s: float
+    residual: float
+    workers: _containers.RepeatedScalarFieldContainer[str]
+    error: str
+    def __init__(self, job_id: _Optional[str] = ..., state: _Optional[str] = ..., scene: _Optional[str] = ..., subscenes: _Optional[int] = ..., elapsed_s: _Optional[float] = ..., residual: _Optional[float] = ..., workers: _Optional[_Iterable[str]] = ..., error: _Optional[str] = ...) -> None: ...
+
+class ListJobsRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class JobList(_message.Message):
+    __slots__ = ("jobs",)
+    JOBS_FIELD_NUMBER: _ClassVar[int]
+    jobs: _containers.RepeatedCompositeFieldContainer[JobSummary]
+    def __init__(self, jobs: _Optional[_Iterable[_Union[JobSummary, _Mapping]]] = ...) -> None: ...
+
+class SubsceneProgress(_message.Message):
+    __slots__ = ("cell", "worker", "shots", "rays", "residual", "twin_bytes", "reassigned")
+    CELL_FIELD_NUMBER: _ClassVar[int]
+    WORKER_FIELD_NUMBER: _ClassVar[int]
+    SHOTS_FIELD_NUMBER: _ClassVar[int]
+    RAYS_FIELD_NUMBER: _ClassVar[int]
+    RESIDUAL_FIELD_NUMBER: _ClassVar[int]
+    TWIN_BYTES_FIELD_NUMBER: _ClassVar[int]
+    REASSIGNED_FIELD_NUMBER: _ClassVar[int]
+    cell: int
+    worker: str
+    shots: int
+    rays: int
+    residual: float
+    twin_bytes: int
+    reassigned: int
+    def __init__(self, cell: _Optional[int] = ..., worker: _Optional[str] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., residual: _Optional[float] = ..., twin_bytes: _Optional[int] = ..., reassigned: _Optional[int] = ...) -> None: ...
+
+class Progress(_message.Message):
+    __slots__ = ("job", "barrier", "shots", "rays", "rms_estimate", "ledger", "subscenes", "bytes_relayed")
+    JOB_FIELD_NUMBER: _ClassVar[int]
+    BARRIER_FIELD_NUMBER: _ClassVar[int]
+    SHOTS_FIELD_NUMBER: _ClassVar[int]
+    RAYS_FIELD_NUMBER: _ClassVar[int]
+    RMS_ESTIMATE_FIELD_NUMBER: _ClassVar[int]
+    LEDGER_FIELD_NUMBER: _ClassVar[int]
+    SUBSCENES_FIELD_NUMBER: _ClassVar[int]
+    BYTES_RELAYED_FIELD_NUMBER: _ClassVar[int]
+    job: JobSummary
+    barrier: int
+    shots: int
+    rays: int
+    rms_estimate: float
+    ledger: Ledger
+    subscenes: _containers.RepeatedCompositeFieldContainer[SubsceneProgress]
+    bytes_relayed: int
+    def __init__(self, job: _Optional[_Union[JobSummary, _Mapping]] = ..., barrier: _Optional[int] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., rms_estimate: _Optional[float] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., subscenes: _Optional[_Iterable[_Union[SubsceneProgress, _Mapping]]] = ..., bytes_relayed: _Optional[int] = ...) -> None: ...
+
+class WorkerInfo(_message.Message):
+    __slots__ = ("address", "capacity", "name")
+    ADDRESS_FIELD_NUMBER: _ClassVar[int]
+    CAPACITY_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    address: str
+    capacity: int
+    name: str
+    def __init__(self, address: _Optional[str] = ..., capacity: _Optional[int] = ..., name: _Optional[str] = ...) -> None: ...
+
+class RegisterReply(_message.Message):
+    __slots__ = ("worker_id",)
+    WORKER_ID_FIELD_NUMBER: _ClassVar[int]
+    worker_id: str
+    def __init__(self, worker_id: _Optional[str] = ...) -> None: ...
+
+class SubsceneKey(_message.Message):
+    __slots__ = ("job_id", "cell")
+    JOB_ID_FIELD_NUMBER: _ClassVar[int]
+    CELL_FIELD_NUMBER: _ClassVar[int]
+    job_id: str
+    cell: int
+    def __init__(self, job_id: _Optional[str] = ..., cell: _Optional[int] = ...) -> None: ...
+
+class SubsceneHeader(_message.Message):
+    __slots__ = ("key", "config_json", "power_per_ray", "mode", "names")
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    CONFIG_JSON_FIELD_NUMBER: _ClassVar[int]
+    POWER_PER_RAY_FIELD_NUMBER: _ClassVar[int]
+    MODE_FIELD_NUMBER: _ClassVar[int]
+    NAMES_FIELD_NUMBER: _ClassVar[int]
+    key: SubsceneKey
+    config_json: str
+    power_per_ray: float
+    mode: str
+    names: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., config_json: _Optional[str] = ..., power_per_ray: _Optional[float] = ..., mode: _Optional[str] = ..., names: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class LoadRequest(_message.Message):
+    __slots__ = ("header", "array")
+    HEADER_FIELD_NUMBER: _ClassVar[int]
+    ARRAY_FIELD_NUMBER: _ClassVar[int]
+    header: SubsceneHeader
+    array: ArrayChunk
+    def __init__(self, header: _Optional[_Union[SubsceneHeader, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...
+
+class SubsceneStatus(_message.Message):
+    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes")
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    LEDGER_FIELD_NUMBER: _ClassVar[int]
+    SHOTS_FIELD_NUMBER: _ClassVar[int]
+    RAYS_FIELD_NUMBER: _ClassVar[int]
+    TWIN_ENTRIES_FIELD_NUMBER: _ClassVar[int]
+    TWIN_BYTES_FIELD_NUMBER: _ClassVar[int]
+    key: SubsceneKey
+    ledger: Ledger
+    shots: int
+    rays: int
+    twin_entries: int
+    twin_bytes: int
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ...) -> None: ...
+
+class IterateRequest(_message.Message):
+    __slots__ = ("key", "batches")
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    BATCHES_FIELD_NUMBER: _ClassVar[int]
+    key: SubsceneKey
+    batches: int
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., batches: _Optional[int] = ...) -> None: ...
+
+class IterateReply(_message.Message):
+    __slots__ = ("array", "status")
+    ARRAY_FIELD_NUMBER: _ClassVar[int]
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    array: ArrayChunk
+    status: SubsceneStatus
+    def __init__(self, array: _Optional[_Union[ArrayChunk, _Mapping]] = ..., status: _Optional[_Union[SubsceneStatus, _Mapping]] = ...) -> None: ...
+
+class DeliverRequest(_message.Message):
+    __slots__ = ("key", "array")
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    ARRAY_FIELD_NUMBER: _ClassVar[int]
+    key: SubsceneKey
+    array: ArrayChunk
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...
+
+class Empty(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...

@@ -1,0 +1,156 @@
+"""numpy arrays and files <-> protobuf messages (dcrad.v1), in chunks.
+
+Arrays travel as raw little-endian bytes with dtype and shape
+(``ArrayChunk``), split well under gRPC's 4 MB default message size; never
+as repeated floats, never pickled.  Only plain numeric dtypes are accepted.
+"""
+
+from __future__ import annotations
+
+from pathlib import PurePosixPath
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from .energy import ACCOUNTS, Ledger
+from .errors import ExchangeError
+from .v1 import dcrad_pb2 as pb
+
+__all__ = [
+    "CHUNK_BYTES", "ALLOWED_DTYPES", "array_chunks", "arrays_to_chunks", "ArrayAssembler", "assemble_arrays",
+    "ledger_to_pb", "ledger_from_pb", "file_chunks", "FileAssembler", "safe_relpath",
+]
+
+#: bytes of payload per chunk: far below gRPC's 4 MB default
+CHUNK_BYTES = 1 << 20
+#: dtypes that may cross the wire (little-endian or byte-sized)
+ALLOWED_DTYPES = {"<f8", "<f4", "<i8", "<i4", "<u8", "<u4", "|b1", "|u1", "|i1"}
+
+
+def _le(arr: np.ndarray) -> np.ndarray:
+    arr = np.ascontiguousarray(arr)
+    if arr.dtype.byteorder == ">" or (arr.dtype.byteorder == "=" and np.little_endian is False):
+        arr = arr.astype(arr.dtype.newbyteorder("<"))
+    return arr
+
+
+def array_chunks(name: str, arr: np.ndarray, chunk: int = CHUNK_BYTES) -> Iterator[pb.ArrayChunk]:
+    """Split one array into ArrayChunk messages (at least one, even when empty)."""
+    arr = _le(np.asarray(arr))
+    dtype = arr.dtype.str
+    if dtype not in ALLOWED_DTYPES:
+        raise ExchangeError(f"array '{name}': dtype {dtype} cannot go on the wire")
+    raw = arr.tobytes()
+    total = len(raw)
+    offset = 0
+    while True:
+        piece = raw[offset : offset + chunk]
+        yield pb.ArrayChunk(name=name, dtype=dtype, shape=list(arr.shape), offset=offset,
+                            total_bytes=total, data=piece)
+        offset += len(piece)
+        if offset >= total:
+            return
+
+
+def arrays_to_chunks(arrays: dict, chunk: int = CHUNK_BYTES) -> Iterator[pb.ArrayChunk]:
+    for name, arr in arrays.items():
+        yield from array_chunks(name, arr, chunk)
+
+
+class ArrayAssembler:
+    """Rebuild arrays from chunks, checking dtype, shape, offsets and sizes."""
+
+    def __init__(self, max_bytes: int = 1 << 34):
+        self.max_bytes = max_bytes
+        self._parts: dict[str, tuple[pb.ArrayChunk, bytearray]] = {}
+        self._bytes = 0
+
+    def add(self, c: pb.ArrayChunk) -> None:
+        if c.dtype not in ALLOWED_DTYPES:
+            raise ExchangeError(f"array '{c.name}': dtype {c.dtype!r} is not allowed on the wire")
+        expect = int(np.prod(c.shape, dtype=np.int64)) * np.dtype(c.dtype).itemsize
+        if expect != c.total_bytes:
+            raise ExchangeError(f"array '{c.name}': shape {list(c.shape)} needs {expect} bytes, "
+                                f"chunk says {c.total_bytes}")
+        head, buf = self._parts.get(c.name, (c, bytearray()))
+        if head.dtype != c.dtype or list(head.shape) != list(c.shape):
+            raise ExchangeError(f"array '{c.name}': chunks disagree on dtype or shape")
+        if c.offset != len(buf):
+            raise ExchangeError(f"array '{c.name}': chunk at offset {c.offset}, expected {len(buf)}")
+        self._bytes += len(c.data)
+        if self._bytes > self.max_bytes:
+            raise ExchangeError(f"arrays exceed the limit of {self.max_bytes} bytes")
+        buf.extend(c.data)
+        if len(buf) > c.total_bytes:
+            raise ExchangeError(f"array '{c.name}': more bytes than its shape holds")
+        self._parts[c.name] = (head, buf)
+
+    def result(self) -> dict:
+        out = {}
+        for name, (head, buf) in self._parts.items():
+            if len(buf) != head.total_bytes:
+                raise ExchangeError(f"array '{name}': got {len(buf)} of {head.total_bytes} bytes")
+            out[name] = np.frombuffer(bytes(buf), dtype=np.dtype(head.dtype)).reshape(tuple(head.shape)).copy()
+        return out
+
+
+def assemble_arrays(chunks: Iterable[pb.ArrayChunk]) -> dict:
+    asm = ArrayAssembler()
+    for c in chunks:
+        asm.add(c)
+    return asm.result()
+
+
+def ledger_to_pb(led: Ledger) -> pb.Ledger:
+    msg = pb.Ledger(closure=led.closure(), residual=led.residual())
+    for name in ACCOUNTS:
+        getattr(msg, name).extend(float(x) for x in getattr(led, name))
+    return msg
+
+
+def ledger_from_pb(msg: pb.Ledger) -> Ledger:
+    led = Ledger()
+    for name in ACCOUNTS:
+        values = list(getattr(msg, name))
+        setattr(led, name, np.array(values if values else [0.0, 0.0, 0.0], np.float64))
+    return led
+
+
+def safe_relpath(path: str) -> str:
+    """A relative '/'-path without '..' or absolute parts; ExchangeError otherwise."""
+    p = PurePosixPath(path.replace("\\", "/"))
+    if not path or p.is_absolute() or any(part in ("..", "") for part in p.parts) or ":" in p.parts[0]:
+        raise ExchangeError(f"file path {path!r} must be relative, without '..'")
+    return str(p)
+
+
+def file_chunks(data: bytes, relpath: str, chunk: int = CHUNK_BYTES) -> Iterator[pb.FileChunk]:
+    total = len(data)
+    offset = 0
+    while True:
+        piece = data[offset : offset + chunk]
+        yield pb.FileChunk(path=relpath, offset=offset, total_bytes=total, data=piece)
+        offset += len(piece)
+        if offset >= total:
+            return
+
+
+class FileAssembler:
+    """Collect FileChunk messages into {relpath: bytes}, enforcing a total size limit."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self.files: dict[str, bytearray] = {}
+        self.total = 0
+
+    def add(self, c: pb.FileChunk) -> None:
+        path = safe_relpath(c.path)
+        if c.total_bytes > self.max_bytes:
+            raise ExchangeError(f"upload too large: {path} is {c.total_bytes} bytes, limit {self.max_bytes}")
+        buf = self.files.setdefault(path, bytearray())
+        if c.offset != len(buf):
+            raise ExchangeError(f"file {path}: chunk at offset {c.offset}, expected {len(buf)}")
+        self.total += len(c.data)
+        if self.total > self.max_bytes:
+            raise ExchangeError(f"upload too large: more than the limit of {self.max_bytes} bytes")
+        buf.extend(c.data)
