@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import tempfile
@@ -159,6 +160,34 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def _announce(role: str, host: str):
+    def ready(port: int) -> None:
+        # one machine-readable line: tests and `dcrad solve` read the bound port from it
+        print(f"dcrad {role} listening on {host}:{port}", flush=True)
+
+    return ready
+
+
+def cmd_coordinator(args) -> int:
+    import asyncio
+
+    from coordinator.server import serve
+
+    asyncio.run(serve(port=args.port, host=args.host, root=args.data, max_upload=args.max_upload,
+                      worker_wait=args.worker_wait, ready=_announce("coordinator", args.host)))
+    return 0
+
+
+def cmd_worker(args) -> int:
+    import asyncio
+
+    from worker.server import serve
+
+    asyncio.run(serve(port=args.port, host=args.host, coordinator=args.coordinator, advertise=args.advertise,
+                      capacity=args.capacity, name=args.name, ready=_announce("worker", args.host)))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="dcrad", description="Divide-and-conquer radiosity.")
     ap.add_argument("-v", "--verbose", action="store_true", help="log more")
@@ -173,6 +202,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progress", action="store_true", help="draw the progress bar even when stderr is not a terminal")
     _solver_args(p)
     p.set_defaults(func=cmd_solve)
+
+    env = os.environ
+    p = sub.add_parser("coordinator", help="run the gRPC coordinator service")
+    p.add_argument("--host", default=env.get("DCRAD_HOST", "127.0.0.1"), help="address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=int(env.get("DCRAD_PORT", "50051")), help="gRPC port (0: any free)")
+    p.add_argument("--data", default=env.get("DCRAD_DATA", "dcrad-coordinator"), help="folder for uploads and results")
+    p.add_argument("--max-upload", type=int, default=int(env.get("DCRAD_MAX_UPLOAD", str(512 * 1024 * 1024))),
+                   help="largest scene upload in bytes")
+    p.add_argument("--worker-wait", type=float, default=60.0, help="seconds a job waits for a first worker")
+    p.set_defaults(func=cmd_coordinator)
+
+    p = sub.add_parser("worker", help="run a gRPC worker that registers with a coordinator")
+    p.add_argument("--host", default=env.get("DCRAD_HOST", "127.0.0.1"), help="address to bind")
+    p.add_argument("--port", type=int, default=int(env.get("DCRAD_WORKER_PORT", "0")), help="gRPC port (0: any free)")
+    p.add_argument("--coordinator", default=env.get("DCRAD_COORDINATOR", "127.0.0.1:50051"),
+                   help="coordinator address host:port")
+    p.add_argument("--advertise", default=env.get("DCRAD_ADVERTISE"),
+                   help="address the coordinator should use for this worker (default host:port)")
+    p.add_argument("--capacity", type=int, default=4, help="subscenes this worker takes at once")
+    p.add_argument("--name", default="", help="a readable name")
+    p.set_defaults(func=cmd_worker)
 
     p = sub.add_parser("scenes", help="list built-in scenes, or write one as OBJ/MTL")
     p.add_argument("name", nargs="?", help="built-in scene to write")

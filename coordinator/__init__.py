@@ -1,0 +1,1 @@
+"""The dcrad coordinator: jobs, workers, partitions and barriers over gRPC."""

@@ -1,0 +1,259 @@
+"""Subscenes on remote workers, behind the handle interface of ``run_divided``.
+
+``RemoteSubscene`` has the same four methods as an in-process ``Subscene``
+(``iterate``, ``collect``, ``deliver``, ``state``), so the barrier loop in
+``dcrad.divide.run_divided`` drives remote workers unchanged.
+
+Failover: after every successful ``deliver`` (the end of a barrier) the handle
+takes a checkpoint of its subscene.  When a worker stops answering, the
+subscene is loaded on another live worker from that checkpoint.  The solver is
+deterministic (the checkpoint carries the RNG state), so replaying the
+interrupted barrier's ``iterate`` reproduces exactly what was lost: no energy
+is lost or counted twice.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from dataclasses import dataclass, field
+
+import grpc
+import numpy as np
+
+from dcrad.boundary import RayParcel, TwinBuffer
+from dcrad.divide import SubsceneState, checkpoint_arrays, subscene_arrays
+from dcrad.errors import DcradError
+from dcrad.v1 import dcrad_pb2 as pb
+from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_from_pb
+
+log = logging.getLogger("dcrad.coordinator")
+
+MAX_MESSAGE = 8 * 1024 * 1024
+#: gRPC codes that mean "this worker is gone", not "the request is bad"
+LOST = {grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.NOT_FOUND,
+        grpc.StatusCode.CANCELLED, grpc.StatusCode.UNKNOWN, grpc.StatusCode.INTERNAL}
+
+
+class NoWorkers(DcradError):
+    """No live worker can take a subscene."""
+
+
+@dataclass
+class WorkerEntry:
+    address: str
+    capacity: int = 4
+    name: str = ""
+    alive: bool = True
+    load: int = 0  #: subscenes assigned now
+    channel: grpc.Channel | None = field(default=None, repr=False)
+
+    def stub(self) -> pb_grpc.WorkerStub:
+        if self.channel is None:
+            self.channel = grpc.insecure_channel(self.address, options=[
+                ("grpc.max_receive_message_length", MAX_MESSAGE),
+                ("grpc.max_send_message_length", MAX_MESSAGE)])
+        return pb_grpc.WorkerStub(self.channel)
+
+
+class WorkerPool:
+    """Registered workers; thread-safe.  Workers re-register as a heartbeat."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self.workers: dict[str, WorkerEntry] = {}
+        self.changed = threading.Condition(self._lock)
+
+    def register(self, address: str, capacity: int, name: str) -> WorkerEntry:
+        with self._lock:
+            w = self.workers.get(address)
+            if w is None:
+                w = self.workers[address] = WorkerEntry(address, max(1, capacity), name)
+                log.info("worker %s registered (capacity %d)", address, w.capacity)
+            elif not w.alive:
+                log.info("worker %s is back", address)
+                w.alive, w.channel = True, None
+            self.changed.notify_all()
+            return w
+
+    def live(self) -> list[WorkerEntry]:
+        with self._lock:
+            return [w for w in self.workers.values() if w.alive]
+
+    def mark_dead(self, w: WorkerEntry) -> None:
+        with self._lock:
+            if w.alive:
+                log.warning("worker %s stopped answering; its subscenes move", w.address)
+            w.alive = False
+            if w.channel is not None:
+                w.channel.close()
+                w.channel = None
+
+    def pick(self, exclude: set[str] = frozenset()) -> WorkerEntry:
+        """The live worker with the most spare capacity (ties: registration order)."""
+        with self._lock:
+            cands = [w for w in self.workers.values() if w.alive and w.address not in exclude]
+            if not cands:
+                raise NoWorkers("no live worker can take the subscene")
+            w = min(cands, key=lambda w: w.load / w.capacity)
+            w.load += 1
+            return w
+
+    def release(self, w: WorkerEntry) -> None:
+        with self._lock:
+            w.load = max(0, w.load - 1)
+
+    def wait_for(self, n: int, timeout: float) -> int:
+        with self._lock:
+            self.changed.wait_for(lambda: sum(w.alive for w in self.workers.values()) >= n, timeout=timeout)
+            return sum(w.alive for w in self.workers.values())
+
+
+def _gather(replies) -> tuple[dict, pb.SubsceneStatus | None]:
+    asm = ArrayAssembler()
+    status = None
+    for r in replies:
+        if r.HasField("status"):
+            status = r.status
+        else:
+            asm.add(r.array)
+    return asm.result(), status
+
+
+class RemoteSubscene:
+    """One subscene on a worker, with checkpoints and failover.
+
+    job_id, cell : identity; sub : the in-process Subscene built by the coordinator
+    (only its arrays are sent; it is not iterated here); pool : WorkerPool.
+    """
+
+    def __init__(self, job_id: str, sub, pool: WorkerPool, timeout: float = 600.0):
+        self.job_id, self.cell, self.pool, self.timeout = job_id, sub.cell, pool, timeout
+        self.mode = sub.mode
+        self.key = pb.SubsceneKey(job_id=job_id, cell=sub.cell)
+        self.header = pb.SubsceneHeader(key=self.key, config_json=json.dumps(sub.config.as_dict()),
+                                        power_per_ray=sub.power_per_ray, mode=sub.mode,
+                                        names=list(sub.patches.names))
+        self.static = subscene_arrays(sub)
+        self.checkpoint: dict | None = None  #: state after the last barrier
+        self.worker: WorkerEntry | None = None
+        self.reassigned = 0
+        self.bytes_relayed = 0
+        self._status: pb.SubsceneStatus | None = None
+        self._collected = None
+        self._last_batches = 0
+        self._state0 = sub.state()
+
+    # -- placement --------------------------------------------------------------
+    def _load(self, w: WorkerEntry) -> None:
+        arrays = dict(self.static)
+        if self.checkpoint is not None:
+            arrays.update(self.checkpoint)
+
+        def requests():
+            yield pb.LoadRequest(header=self.header)
+            for c in arrays_to_chunks(arrays):
+                yield pb.LoadRequest(array=c)
+
+        self._status = w.stub().Load(requests(), timeout=self.timeout)
+        self.worker = w
+
+    def place(self) -> None:
+        """Load on the least busy live worker, moving on when one fails."""
+        tried: set[str] = set()
+        while True:
+            w = self.pool.pick(exclude=tried)
+            try:
+                self._load(w)
+                return
+            except grpc.RpcError as exc:
+                self.pool.release(w)
+                if exc.code() not in LOST:
+                    raise
+                self.pool.mark_dead(w)
+                tried.add(w.address)
+
+    def _failover(self, exc: grpc.RpcError) -> None:
+        if exc.code() not in LOST:
+            raise exc
+        old = self.worker
+        if old is not None:
+            self.pool.mark_dead(old)
+            self.pool.release(old)
+        self.reassigned += 1
+        log.warning("job %s cell %d: worker %s lost (%s); resuming from the last barrier",
+                    self.job_id, self.cell, old.address if old else "?", exc.code().name)
+        self.place()
+
+    # -- the handle interface ------------------------------------------------------
+    def _iterate_once(self, n: int):
+        replies = self.worker.stub().Iterate(pb.IterateRequest(key=self.key, batches=n), timeout=self.timeout)
+        arrays, status = _gather(replies)
+        kind = RayParcel if self.mode == "exact" else TwinBuffer
+        return kind.from_arrays(arrays), status
+
+    def iterate(self, n: int) -> int:
+        self._last_batches = n
+        while True:
+            try:
+                buf, status = self._iterate_once(n)
+                break
+            except grpc.RpcError as exc:
+                self._failover(exc)
+        before = self._status.rays if self._status is not None else 0
+        self._status, self._collected = status, buf
+        return status.rays - before
+
+    def collect(self):
+        out, self._collected = self._collected, None
+        self.bytes_relayed += out.nbytes()
+        return out
+
+    def deliver(self, buffer) -> None:
+        arrays = buffer.to_arrays()
+        while True:
+            try:
+                def requests():
+                    yield pb.DeliverRequest(key=self.key)
+                    for c in arrays_to_chunks(arrays):
+                        yield pb.DeliverRequest(array=c)
+
+                self._status = self.worker.stub().Deliver(requests(), timeout=self.timeout)
+                self.checkpoint = self._fetch_checkpoint()
+                return
+            except grpc.RpcError as exc:
+                # the new worker starts from the previous barrier: replay this barrier's
+                # iterate (deterministic: same buffer, same state), then deliver again
+                self._failover(exc)
+                try:
+                    self._iterate_once(self._last_batches)
+                except grpc.RpcError as again:
+                    self._failover(again)
+
+    def _fetch_checkpoint(self) -> dict:
+        asm = ArrayAssembler()
+        for c in self.worker.stub().Checkpoint(self.key, timeout=self.timeout):
+            asm.add(c)
+        return asm.result()
+
+    def state(self) -> SubsceneState:
+        s = self._status
+        if s is None:
+            return self._state0
+        return SubsceneState(self.cell, ledger_from_pb(s.ledger), s.shots, s.rays, s.twin_entries, s.twin_bytes)
+
+    def radiosity(self) -> np.ndarray:
+        """(n,3) radiosity of the subscene's patches at the last barrier."""
+        if self.checkpoint is None:
+            return self.static["radiosity"]
+        return self.checkpoint["radiosity"]
+
+    def drop(self) -> None:
+        if self.worker is not None:
+            try:
+                self.worker.stub().Drop(self.key, timeout=10)
+            except grpc.RpcError:
+                pass
+            self.pool.release(self.worker)

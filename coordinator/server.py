@@ -1,0 +1,129 @@
+"""Coordinator service (grpc.aio): the servicer maps domain errors to status codes.
+
+Handlers stay thin: uploads are assembled with ``dcrad.wire``, jobs live in
+``JobManager``, workers in ``WorkerPool``.  Only this module turns DcradError
+into gRPC status codes: INVALID_ARGUMENT for a bad scene, NOT_FOUND for an
+unknown job, RESOURCE_EXHAUSTED for an upload over the limit,
+FAILED_PRECONDITION for results of a job that is not done.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+from pathlib import Path
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+
+from dcrad.errors import DcradError, ExchangeError
+from dcrad.v1 import dcrad_pb2 as pb
+from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+from dcrad.wire import FileAssembler, file_chunks
+
+from .jobs import TERMINAL, JobManager
+from .remote import WorkerPool
+
+log = logging.getLogger("dcrad.coordinator")
+
+MAX_MESSAGE = 8 * 1024 * 1024
+#: default upload limit (bytes) for one job's scene files
+MAX_UPLOAD = 512 * 1024 * 1024
+
+
+class CoordinatorServicer(pb_grpc.CoordinatorServicer):
+    def __init__(self, manager: JobManager, max_upload: int = MAX_UPLOAD):
+        self.manager = manager
+        self.max_upload = max_upload
+
+    async def _job(self, job_id: str, context):
+        job = self.manager.get(job_id)
+        if job is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"job '{job_id}' not found")
+        return job
+
+    async def Submit(self, request_iterator, context):
+        spec = None
+        files = FileAssembler(self.max_upload)
+        try:
+            async for req in request_iterator:
+                if req.HasField("spec"):
+                    spec = req.spec
+                elif spec is None:
+                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Submit must start with the job spec")
+                else:
+                    files.add(req.file)
+        except ExchangeError as exc:
+            code = grpc.StatusCode.RESOURCE_EXHAUSTED if "too large" in str(exc) else grpc.StatusCode.INVALID_ARGUMENT
+            await context.abort(code, str(exc))
+        if spec is None:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Submit had no job spec")
+        try:
+            job = await asyncio.to_thread(self.manager.create, spec, files.files)
+        except DcradError as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+        self.manager.start(job)
+        log.info("job %s submitted: %s", job.id, spec.scene)
+        return job.summary()
+
+    async def Watch(self, request, context):
+        job = await self._job(request.job_id, context)
+        async for update in job.changes():
+            yield update
+
+    async def Fetch(self, request, context):
+        job = await self._job(request.job_id, context)
+        if job.state != "done":
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION,
+                                f"job '{job.id}' is {job.state}; results exist only for done jobs")
+        out = job.root / "out"
+        for path in sorted(p for p in out.rglob("*") if p.is_file()):
+            rel = path.relative_to(out).as_posix()
+            for chunk in file_chunks(path.read_bytes(), rel):
+                yield chunk
+
+    async def Cancel(self, request, context):
+        job = await self._job(request.job_id, context)
+        if job.state not in TERMINAL:
+            job.cancel.set()
+        return job.summary()
+
+    async def ListJobs(self, request, context):
+        return pb.JobList(jobs=[j.summary() for j in self.manager.jobs.values()])
+
+    async def RegisterWorker(self, request, context):
+        if not request.address:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "a worker must give its address")
+        w = self.manager.pool.register(request.address, request.capacity or 4, request.name)
+        return pb.RegisterReply(worker_id=w.address)
+
+
+async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "dcrad-coordinator",
+                max_upload: int = MAX_UPLOAD, worker_wait: float = 60.0, ready=None, stop: asyncio.Event | None = None,
+                web_port: int | None = None, web_host: str | None = None) -> None:
+    """Run the coordinator until SIGTERM/SIGINT (or ``stop``); ``ready(port)`` once listening."""
+    pool = WorkerPool()
+    manager = JobManager(Path(root), pool, worker_wait=worker_wait)
+    server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
+                                      ("grpc.max_send_message_length", MAX_MESSAGE)])
+    pb_grpc.add_CoordinatorServicer_to_server(CoordinatorServicer(manager, max_upload), server)
+    health_servicer = health.aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    bound = server.add_insecure_port(f"{host}:{port}")
+    await server.start()
+    await health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
+    await health_servicer.set("dcrad.v1.Coordinator", health_pb2.HealthCheckResponse.SERVING)
+    log.info("coordinator listening on %s:%d, jobs in %s", host, bound, root)
+    if ready is not None:
+        ready(bound)
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+        except (NotImplementedError, RuntimeError):
+            pass
+    await stop.wait()
+    await health_servicer.enter_graceful_shutdown()
+    await server.stop(grace=2.0)

@@ -1,0 +1,1 @@
+"""The dcrad worker: a gRPC service that holds subscenes and iterates them."""

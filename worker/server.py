@@ -1,0 +1,183 @@
+"""Worker service: load subscenes, iterate them, hand over and accept boundary buffers.
+
+Thin: protocol and bookkeeping only.  The numerics are ``dcrad.divide``; they
+run in a thread so the event loop keeps answering health checks.  At start the
+worker registers with the coordinator, retrying with backoff while the
+coordinator is not up, and re-registers every few seconds so a restarted
+coordinator learns about it again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import signal
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+
+from dcrad.boundary import RayParcel, TwinBuffer
+from dcrad.config import SolverConfig
+from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
+from dcrad.errors import DcradError
+from dcrad.v1 import dcrad_pb2 as pb
+from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb
+
+log = logging.getLogger("dcrad.worker")
+
+#: gRPC message size limits: chunks are 1 MB, leave room
+MAX_MESSAGE = 8 * 1024 * 1024
+
+
+def status_of(key: pb.SubsceneKey, sub: Subscene) -> pb.SubsceneStatus:
+    st = sub.state()
+    return pb.SubsceneStatus(key=key, ledger=ledger_to_pb(st.ledger), shots=st.shots, rays=st.rays,
+                             twin_entries=st.twin_entries, twin_bytes=st.twin_bytes)
+
+
+class WorkerServicer(pb_grpc.WorkerServicer):
+    """Holds subscenes by (job id, cell); several jobs may share a worker."""
+
+    def __init__(self):
+        self.subscenes: dict[tuple[str, int], Subscene] = {}
+        self.locks: dict[tuple[str, int], asyncio.Lock] = {}
+
+    def _get(self, key: pb.SubsceneKey, context):
+        k = (key.job_id, key.cell)
+        if k not in self.subscenes:
+            return None, k
+        return self.subscenes[k], k
+
+    async def Load(self, request_iterator, context):
+        header = None
+        asm = ArrayAssembler()
+        async for req in request_iterator:
+            if req.HasField("header"):
+                header = req.header
+            else:
+                asm.add(req.array)
+        if header is None:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Load needs a header first")
+        try:
+            arrays = asm.result()
+            config = SolverConfig(**json.loads(header.config_json))
+            sub = await asyncio.to_thread(build_subscene, header.key.cell, config, header.power_per_ray,
+                                          header.mode or "binned", list(header.names), arrays)
+        except (DcradError, KeyError, TypeError, ValueError) as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot load subscene: {exc}")
+        k = (header.key.job_id, header.key.cell)
+        self.subscenes[k] = sub
+        self.locks[k] = asyncio.Lock()
+        log.info("loaded job %s cell %d: %d patches, %d boundaries", k[0], k[1], len(sub.patches),
+                 len(sub.boundaries))
+        return status_of(header.key, sub)
+
+    async def Iterate(self, request, context):
+        sub, k = self._get(request.key, context)
+        if sub is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"no subscene {k} on this worker")
+        async with self.locks[k]:
+            await asyncio.to_thread(sub.iterate, max(1, request.batches))
+            out = sub.collect()
+            for chunk in arrays_to_chunks(out.to_arrays()):
+                yield pb.IterateReply(array=chunk)
+            yield pb.IterateReply(status=status_of(request.key, sub))
+
+    async def Deliver(self, request_iterator, context):
+        key = None
+        asm = ArrayAssembler()
+        async for req in request_iterator:
+            if req.HasField("key"):
+                key = req.key
+            else:
+                asm.add(req.array)
+        if key is None:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Deliver needs a key first")
+        sub, k = self._get(key, context)
+        if sub is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"no subscene {k} on this worker")
+        try:
+            arrays = asm.result()
+            buf = (RayParcel if sub.mode == "exact" else TwinBuffer).from_arrays(arrays)
+        except (DcradError, KeyError, ValueError) as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad boundary buffer: {exc}")
+        async with self.locks[k]:
+            sub.deliver(buf)
+        return status_of(key, sub)
+
+    async def Checkpoint(self, request, context):
+        sub, k = self._get(request, context)
+        if sub is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"no subscene {k} on this worker")
+        async with self.locks[k]:
+            arrays = checkpoint_arrays(sub)
+        for chunk in arrays_to_chunks(arrays):
+            yield chunk
+
+    async def Drop(self, request, context):
+        k = (request.job_id, request.cell)
+        self.subscenes.pop(k, None)
+        self.locks.pop(k, None)
+        return pb.Empty()
+
+
+async def register_forever(coordinator: str, address: str, capacity: int, name: str,
+                           stop: asyncio.Event, period: float = 5.0) -> None:
+    """Register with the coordinator, retrying with backoff; then re-register every ``period`` s."""
+    delay = 0.2
+    registered = False
+    async with grpc.aio.insecure_channel(coordinator) as channel:
+        stub = pb_grpc.CoordinatorStub(channel)
+        while not stop.is_set():
+            try:
+                await stub.RegisterWorker(pb.WorkerInfo(address=address, capacity=capacity, name=name),
+                                          timeout=5.0)
+                if not registered:
+                    log.info("registered with coordinator %s as %s", coordinator, address)
+                registered, delay = True, period
+            except grpc.aio.AioRpcError as exc:
+                if registered:
+                    log.warning("coordinator %s unreachable (%s); retrying", coordinator, exc.code().name)
+                registered = False
+                delay = min(max(delay * 2, 0.2), 2.0)
+            try:
+                await asyncio.wait_for(stop.wait(), timeout=delay)
+            except asyncio.TimeoutError:
+                pass
+
+
+async def serve(port: int = 0, host: str = "127.0.0.1", coordinator: str | None = None,
+                advertise: str | None = None, capacity: int = 4, name: str = "",
+                ready=None) -> None:
+    """Run a worker until SIGTERM/SIGINT; ``ready(port)`` is called once listening."""
+    server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
+                                      ("grpc.max_send_message_length", MAX_MESSAGE)])
+    pb_grpc.add_WorkerServicer_to_server(WorkerServicer(), server)
+    health_servicer = health.aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    bound = server.add_insecure_port(f"{host}:{port}")
+    await server.start()
+    await health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
+    await health_servicer.set("dcrad.v1.Worker", health_pb2.HealthCheckResponse.SERVING)
+    address = advertise or f"{host}:{bound}"
+    log.info("worker listening on %s:%d (advertised as %s)", host, bound, address)
+    if ready is not None:
+        ready(bound)
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+        except (NotImplementedError, RuntimeError):
+            pass
+    tasks = []
+    if coordinator:
+        tasks.append(asyncio.create_task(register_forever(coordinator, address, capacity, name or address, stop)))
+    await stop.wait()
+    await health_servicer.enter_graceful_shutdown()
+    for t in tasks:
+        await t
+    await server.stop(grace=2.0)
