@@ -98,6 +98,11 @@ class CoordinatorServicer(pb_grpc.CoordinatorServicer):
         w = self.manager.pool.register(request.address, request.capacity or 4, request.name)
         return pb.RegisterReply(worker_id=w.address)
 
+    async def ListWorkers(self, request, context):
+        return pb.WorkerList(workers=[pb.WorkerInfo(address=w.address, capacity=w.capacity, name=w.name,
+                                                    alive=w.alive, load=w.load)
+                                      for w in list(self.manager.pool.workers.values())])
+
 
 async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "dcrad-coordinator",
                 max_upload: int = MAX_UPLOAD, worker_wait: float = 60.0, ready=None, stop: asyncio.Event | None = None,

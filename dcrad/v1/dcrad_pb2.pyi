@@ -183,14 +183,28 @@ class Progress(_message.Message):
     def __init__(self, job: _Optional[_Union[JobSummary, _Mapping]] = ..., barrier: _Optional[int] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., rms_estimate: _Optional[float] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., subscenes: _Optional[_Iterable[_Union[SubsceneProgress, _Mapping]]] = ..., bytes_relayed: _Optional[int] = ...) -> None: ...
 
 class WorkerInfo(_message.Message):
-    __slots__ = ("address", "capacity", "name")
+    __slots__ = ("address", "capacity", "name", "alive", "load")
     ADDRESS_FIELD_NUMBER: _ClassVar[int]
     CAPACITY_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
+    ALIVE_FIELD_NUMBER: _ClassVar[int]
+    LOAD_FIELD_NUMBER: _ClassVar[int]
     address: str
     capacity: int
     name: str
-    def __init__(self, address: _Optional[str] = ..., capacity: _Optional[int] = ..., name: _Optional[str] = ...) -> None: ...
+    alive: bool
+    load: int
+    def __init__(self, address: _Optional[str] = ..., capacity: _Optional[int] = ..., name: _Optional[str] = ..., alive: _Optional[bool] = ..., load: _Optional[int] = ...) -> None: ...
+
+class ListWorkersRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class WorkerList(_message.Message):
+    __slots__ = ("workers",)
+    WORKERS_FIELD_NUMBER: _ClassVar[int]
+    workers: _containers.RepeatedCompositeFieldContainer[WorkerInfo]
+    def __init__(self, workers: _Optional[_Iterable[_Union[WorkerInfo, _Mapping]]] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
     __slots__ = ("worker_id",)

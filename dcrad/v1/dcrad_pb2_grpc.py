@@ -64,6 +64,11 @@ class CoordinatorStub:
                 request_serializer=dcrad_dot_v1_dot_dcrad__pb2.WorkerInfo.SerializeToString,
                 response_deserializer=dcrad_dot_v1_dot_dcrad__pb2.RegisterReply.FromString,
                 _registered_method=True)
+        self.ListWorkers = channel.unary_unary(
+                '/dcrad.v1.Coordinator/ListWorkers',
+                request_serializer=dcrad_dot_v1_dot_dcrad__pb2.ListWorkersRequest.SerializeToString,
+                response_deserializer=dcrad_dot_v1_dot_dcrad__pb2.WorkerList.FromString,
+                _registered_method=True)
 
 
 class CoordinatorServicer:
@@ -109,6 +114,13 @@ class CoordinatorServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def ListWorkers(self, request, context):
+        """The registered workers.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_CoordinatorServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -141,6 +153,11 @@ def add_CoordinatorServicer_to_server(servicer, server):
                     servicer.RegisterWorker,
                     request_deserializer=dcrad_dot_v1_dot_dcrad__pb2.WorkerInfo.FromString,
                     response_serializer=dcrad_dot_v1_dot_dcrad__pb2.RegisterReply.SerializeToString,
+            ),
+            'ListWorkers': grpc.unary_unary_rpc_method_handler(
+                    servicer.ListWorkers,
+                    request_deserializer=dcrad_dot_v1_dot_dcrad__pb2.ListWorkersRequest.FromString,
+                    response_serializer=dcrad_dot_v1_dot_dcrad__pb2.WorkerList.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -305,6 +322,33 @@ class Coordinator:
             '/dcrad.v1.Coordinator/RegisterWorker',
             dcrad_dot_v1_dot_dcrad__pb2.WorkerInfo.SerializeToString,
             dcrad_dot_v1_dot_dcrad__pb2.RegisterReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ListWorkers(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/dcrad.v1.Coordinator/ListWorkers',
+            dcrad_dot_v1_dot_dcrad__pb2.ListWorkersRequest.SerializeToString,
+            dcrad_dot_v1_dot_dcrad__pb2.WorkerList.FromString,
             options,
             channel_credentials,
             insecure,

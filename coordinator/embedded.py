@@ -1,0 +1,124 @@
+"""A coordinator and N worker processes on loopback, for `dcrad solve` and tests.
+
+``LocalCluster`` starts real processes (``python -m dcrad.cli coordinator`` and
+``worker``) on free ports, waits until every worker has registered, and stops
+them all (SIGTERM, then SIGKILL after a grace period) when the ``with`` block
+ends.  ``kill_worker(i)`` is there for the worker-loss tests.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import grpc
+
+from dcrad.errors import DcradError
+
+
+def _read_port(proc: subprocess.Popen, role: str, timeout: float) -> int:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            if proc.poll() is not None:
+                raise DcradError(f"the {role} process exited with code {proc.returncode} before listening")
+            continue
+        if "listening on" in line:
+            return int(line.strip().rsplit(":", 1)[1])
+    raise DcradError(f"the {role} did not start listening within {timeout:.0f} s")
+
+
+class LocalCluster:
+    """``with LocalCluster(workers=2) as c: c.address`` -> "127.0.0.1:PORT"."""
+
+    def __init__(self, workers: int = 2, data: str | Path | None = None, python: str = sys.executable,
+                 log_dir: str | Path | None = None, start_timeout: float = 60.0,
+                 coordinator_args: tuple[str, ...] = (), port: int = 0):
+        self.n_workers = workers
+        self._tmp = None if data else tempfile.TemporaryDirectory(prefix="dcrad-cluster-")
+        self.data = Path(data or self._tmp.name)
+        self.python = python
+        self.log_dir = Path(log_dir) if log_dir else self.data
+        self.start_timeout = start_timeout
+        self.coordinator_args = tuple(coordinator_args)
+        self.port = port
+        self.coordinator: subprocess.Popen | None = None
+        self.workers: list[subprocess.Popen] = []
+        self.worker_ports: list[int] = []
+        self.address = ""
+
+    def _spawn(self, *args: str) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        err = open(self.log_dir / f"{args[0]}-{len(self.workers)}.log", "ab")
+        return subprocess.Popen([self.python, "-m", "dcrad.cli", *args], stdout=subprocess.PIPE, stderr=err,
+                                text=True, env=env, stdin=subprocess.DEVNULL)
+
+    def start_worker(self) -> int:
+        """Start one more worker; returns its index."""
+        proc = self._spawn("worker", "--port", "0", "--coordinator", self.address)
+        self.workers.append(proc)
+        self.worker_ports.append(_read_port(proc, "worker", self.start_timeout))
+        return len(self.workers) - 1
+
+    def kill_worker(self, i: int) -> None:
+        """SIGKILL worker i: no goodbye, as a crash would be."""
+        self.workers[i].kill()
+        self.workers[i].wait(10)
+
+    def wait_registered(self, n: int) -> None:
+        """Wait until the coordinator lists n live workers."""
+        from dcrad.v1 import dcrad_pb2 as pb
+        from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+
+        deadline = time.monotonic() + self.start_timeout
+        with grpc.insecure_channel(self.address) as ch:
+            stub = pb_grpc.CoordinatorStub(ch)
+            while time.monotonic() < deadline:
+                try:
+                    live = [w for w in stub.ListWorkers(pb.ListWorkersRequest(), timeout=5).workers if w.alive]
+                    if len(live) >= n:
+                        return
+                except grpc.RpcError:
+                    pass
+                time.sleep(0.05)
+        raise DcradError(f"fewer than {n} workers registered within {self.start_timeout:.0f} s")
+
+    def __enter__(self) -> "LocalCluster":
+        try:
+            self.coordinator = self._spawn("coordinator", "--port", str(self.port), "--data",
+                                           str(self.data / "coordinator"), *self.coordinator_args)
+            port = _read_port(self.coordinator, "coordinator", self.start_timeout)
+            self.address = f"127.0.0.1:{port}"
+            for _ in range(self.n_workers):
+                self.start_worker()
+            self.wait_registered(self.n_workers)
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def close(self) -> None:
+        procs = [p for p in self.workers + [self.coordinator] if p is not None]
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(10)
+            if p.stdout:
+                p.stdout.close()
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def __exit__(self, *exc) -> None:
+        self.close()
