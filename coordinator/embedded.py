@@ -57,7 +57,8 @@ class LocalCluster:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         err = open(self.log_dir / f"{args[0]}-{len(self.workers)}.log", "ab")
         return subprocess.Popen([self.python, "-m", "dcrad.cli", *args], stdout=subprocess.PIPE, stderr=err,
-                                text=True, env=env, stdin=subprocess.DEVNULL)
+                                text=True, env=env, stdin=subprocess.DEVNULL,
+                                start_new_session=True)  # a terminal Ctrl-C reaches only the parent
 
     def start_worker(self) -> int:
         """Start one more worker; returns its index."""

@@ -119,9 +119,10 @@ class JobManager:
             prepare(scene_dir / spec.scene, spec.solver.patch_size or None, spec.solver.scale or 1.0)
             solver_config(spec.solver)
             self._divide(spec, 1)
-        except DcradError:
+        except DcradError as exc:
             shutil.rmtree(job.root, ignore_errors=True)
-            raise
+            # name the file as the user uploaded it, not by the coordinator's folder
+            raise type(exc)(str(exc).replace(f"{scene_dir}/", "").replace(str(scene_dir), ".")) from None
         self.jobs[job.id] = job
         return job
 
@@ -198,7 +199,7 @@ class JobManager:
             solver = Solver(patches, config)
             solver.adopt_divided(run)
             out = job.root / "out"
-            outputs = write_outputs(out, scene, patches)
+            outputs = write_outputs(out, scene, patches, spec.preview_width or 640, spec.preview_height or 480)
             settings = config.as_dict() | {"patch_size_m": size, "scale": spec.solver.scale or 1.0}
             report = run_report(scene, solver, settings, {"solve_s": run.wall_seconds},
                                 list(scene.warnings), outputs)

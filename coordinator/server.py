@@ -74,10 +74,11 @@ class CoordinatorServicer(pb_grpc.CoordinatorServicer):
 
     async def Fetch(self, request, context):
         job = await self._job(request.job_id, context)
-        if job.state != "done":
-            await context.abort(grpc.StatusCode.FAILED_PRECONDITION,
-                                f"job '{job.id}' is {job.state}; results exist only for done jobs")
         out = job.root / "out"
+        if job.state not in ("done", "cancelled") or not (out / "report.json").exists():
+            await context.abort(grpc.StatusCode.FAILED_PRECONDITION,
+                                f"job '{job.id}' is {job.state}; results exist for done jobs "
+                                f"(and for cancelled ones, up to where they stopped)")
         for path in sorted(p for p in out.rglob("*") if p.is_file()):
             rel = path.relative_to(out).as_posix()
             for chunk in file_chunks(path.read_bytes(), rel):

@@ -39,7 +39,10 @@ def _solver_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--patch-size", type=float, default=0.0,
                    help="largest patch edge in metres (default: 1/40 of the scene diagonal)")
     p.add_argument("--scale", type=float, default=1.0, help="multiply scene coordinates by this (unit conversion to metres)")
-    p.add_argument("--subscenes", type=int, default=1, help="split into k subscenes (1: no partition, no twins)")
+    p.add_argument("--subscenes", type=int, default=0,
+                   help="split into k subscenes (default: one per worker; 1: no partition, no twins)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="local worker processes with an embedded coordinator (0: solve in this process)")
     p.add_argument("--boundary", choices=("binned", "exact"), default="binned",
                    help="boundary mode: the paper's binned twins, or exact ray forwarding")
     p.add_argument("--iterations", type=int, default=4, help="batches per subscene between barriers")
@@ -88,6 +91,8 @@ def cmd_solve(args) -> int:
 
     config = _config(args)
     out = Path(args.out)
+    if args.workers > 0:
+        return _solve_embedded(args, config, out)
     bar = ProgressBar(config.tol, force=args.progress)
     stop = _Interrupt()
     previous = signal.signal(signal.SIGINT, stop)
@@ -101,7 +106,7 @@ def cmd_solve(args) -> int:
             from .divide import DivideConfig
 
             planes = parse_planes(args.planes)
-            k = max(args.subscenes, 2) if planes else args.subscenes
+            k = max(args.subscenes, 2) if planes else max(args.subscenes, 1)
             divide = DivideConfig(subscenes=k, mode=args.boundary, iterations=args.iterations)
             report = solve_to(path, out, config, patch_size=args.patch_size, scale=args.scale,
                               on_progress=on_progress, should_stop=stop.should_stop,
@@ -109,13 +114,7 @@ def cmd_solve(args) -> int:
     finally:
         signal.signal(signal.SIGINT, previous)
     bar.update(report["residual"], report["stats"]["rays"], report["stats"]["wall_seconds"], 0.0, final=True)
-    st = report["stats"]
-    print(
-        f"dcrad: {report['scene']['patches']} patches, {st['rays']:,} rays, {st['shots']:,} shots in "
-        f"{st['wall_seconds']:.2f} s ({report['rays_per_second'] / 1e6:.2f} Mrays/s); residual "
-        f"{report['residual']:.2e}, stopped by {st['stopped_by']}; ledger closure {report['ledger']['closure']:.1e}"
-    )
-    print(f"dcrad: wrote {', '.join(report['outputs'].values())}, report.json in {out}")
+    _summary(report, out)
     return 0
 
 
@@ -145,6 +144,73 @@ def cmd_compare(args) -> int:
     for line in summary_lines(result):
         print(line)
     print(f"dcrad: wrote {', '.join(f.name for f in files.values())} in {out}")
+    return 0
+
+
+def _summary(report: dict, out: Path) -> None:
+    st = report["stats"]
+    print(
+        f"dcrad: {report['scene']['patches']} patches, {st['rays']:,} rays, {st['shots']:,} shots in "
+        f"{st['wall_seconds']:.2f} s ({report['rays_per_second'] / 1e6:.2f} Mrays/s); residual "
+        f"{report['residual']:.2e}, stopped by {st['stopped_by']}; ledger closure {report['ledger']['closure']:.1e}"
+    )
+    print(f"dcrad: wrote {', '.join(report['outputs'].values())}, report.json in {out}")
+
+
+def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
+    """`dcrad solve --workers N`: a coordinator and N workers on loopback, then submit/watch/fetch."""
+    import json
+
+    from coordinator import client
+    from coordinator.embedded import LocalCluster
+
+    from .errors import SolveError
+    from .pipeline import resolve_scene
+
+    if args.planes:
+        raise DcradError("--planes works in process only (--workers 0)")
+    stop = _Interrupt()
+    with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
+        path = resolve_scene(args.scene, Path(tmp))
+        # a bad scene fails here, naming the user's own file, before any process starts
+        from .scene import load_scene
+
+        load_scene(path, scale=args.scale)
+        client.scene_files(path)
+        with LocalCluster(workers=args.workers) as cluster:
+            print(f"dcrad: coordinator {cluster.address} with {args.workers} local workers", file=sys.stderr)
+            solver = {"tol": config.tol, "time_limit": config.time_limit, "max_rays": config.max_rays,
+                      "seed": config.seed, "rays_per_power": config.rays_per_power,
+                      "patch_size": args.patch_size, "scale": args.scale}
+            divide = {"subscenes": args.subscenes or args.workers, "mode": args.boundary,
+                      "iterations": args.iterations}
+            try:
+                job = client.submit(cluster.address, path, solver, divide, (args.width, args.height))
+            except client.grpc.RpcError as exc:
+                raise DcradError(client.rpc_message(exc, cluster.address)) from None
+            bar = client.WatchBar(config.tol, force=args.progress)
+            cancelled = []
+            previous = signal.signal(signal.SIGINT, stop)
+
+            def on_progress(p):
+                bar(p)
+                if stop.requested and not cancelled:
+                    client.cancel(cluster.address, job.job_id)
+                    cancelled.append(True)
+
+            try:
+                last = client.watch(cluster.address, job.job_id, on_progress)
+            finally:
+                signal.signal(signal.SIGINT, previous)
+                bar.close()
+            if last is None or last.job.state not in ("done", "cancelled"):
+                raise SolveError(f"job {job.job_id} {last.job.state if last else 'vanished'}: "
+                                 f"{last.job.error if last else ''}")
+            client.fetch(cluster.address, job.job_id, out)
+    report = json.loads((out / "report.json").read_text())
+    for w in report.get("warnings", []):
+        log.warning(w)
+    _summary(report, out)
     return 0
 
 
@@ -223,6 +289,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--capacity", type=int, default=4, help="subscenes this worker takes at once")
     p.add_argument("--name", default="", help="a readable name")
     p.set_defaults(func=cmd_worker)
+
+    from coordinator.client import add_client_commands
+
+    add_client_commands(sub)
 
     p = sub.add_parser("scenes", help="list built-in scenes, or write one as OBJ/MTL")
     p.add_argument("name", nargs="?", help="built-in scene to write")

@@ -31,10 +31,12 @@ def read_image(path: Path) -> np.ndarray:
         inp.close()
 
 
+@pytest.mark.parametrize("workers", [0, 2])
 @pytest.mark.parametrize("scene", ["cornell", "office", "furnace"])
-def test_builtin_scene_outputs_agree(tmp_path, scene):
+def test_builtin_scene_outputs_agree(tmp_path, scene, workers):
+    """In this process (--workers 0) and through the embedded service (two worker processes)."""
     out = tmp_path / "out"
-    r = run("solve", scene, "--out", out, "--tol", "0.05", "--width", "160", "--height", "120")
+    r = run("solve", scene, "--workers", workers, "--out", out, "--tol", "0.05", "--width", "160", "--height", "120")
     assert r.returncode == 0, r.stderr
     assert "Traceback" not in r.stderr
     report = json.loads((out / "report.json").read_text())
@@ -181,12 +183,12 @@ def test_solve_divided_from_the_command_line(tmp_path, mode):
 def test_explicit_planes_on_the_command_line(tmp_path):
     out = tmp_path / "out"
     # the 2x3 office: a wall spans x in [4.00, 4.12] and another z in [4.00, 4.12]
-    r = run("solve", "office", "--planes", "x=4.06,z=4.06", "--out", out, "--tol", "0.05",
+    r = run("solve", "office", "--workers", "0", "--planes", "x=4.06,z=4.06", "--out", out, "--tol", "0.05",
             "--width", "80", "--height", "60")
     assert r.returncode == 0, r.stderr
     div = json.loads((out / "report.json").read_text())["divided"]
     assert div["subscenes"] == 4 and div["max_barrier_closure"] < 1e-12
     planes = {(p["axis"], round(p["offset"], 3)) for p in div["partition"]["planes"]}
     assert planes == {("x", 4.06), ("z", 4.06)}
-    bad = run("solve", "office", "--planes", "w=3", "--out", tmp_path / "bad")
+    bad = run("solve", "office", "--workers", "0", "--planes", "w=3", "--out", tmp_path / "bad")
     assert bad.returncode == 2 and "'w=3'" in bad.stderr and "Traceback" not in bad.stderr

@@ -176,18 +176,22 @@ def test_documented_errors(office, tmp_path):
                     call()
                 assert e.value.code() == grpc.StatusCode.NOT_FOUND and "nope" in e.value.details()
 
-    # a cancelled job ends cancelled and has no results to fetch
+    # no results while running; a cancelled job ends cancelled with the results so far
     furnace = tmp_path / "furnace"
     scenes.write_builtin("furnace", furnace, rho=0.99)
     with LocalCluster(workers=1, data=tmp_path / "c2") as cluster:
         job = submit(cluster.address, furnace, "furnace.obj", {"tol": 1e-9}, {"subscenes": 1})
         with grpc.insecure_channel(cluster.address) as ch:
             stub = pb_grpc.CoordinatorStub(ch)
+            with pytest.raises(grpc.RpcError) as e:
+                list(stub.Fetch(pb.JobRef(job_id=job.job_id)))
+            assert e.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+            assert "running" in e.value.details() or "queued" in e.value.details()
             for p in stub.Watch(pb.JobRef(job_id=job.job_id)):
                 if p.barrier >= 1 and p.job.state == "running":
                     stub.Cancel(pb.JobRef(job_id=job.job_id))
                 final = p
             assert final.job.state == "cancelled"
-            with pytest.raises(grpc.RpcError) as e:
-                list(stub.Fetch(pb.JobRef(job_id=job.job_id)))
-            assert e.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+        files = fetch(cluster.address, job.job_id)
+    report = json.loads(bytes(files["report.json"]))
+    assert report["stats"]["stopped_by"] == "stopped" and report["ledger"]["closure"] < 1e-12

@@ -1,0 +1,391 @@
+"""Client side of the Coordinator service: the API and the ``dcrad`` job commands.
+
+``submit`` uploads a scene with the files it references, ``watch`` follows a job
+barrier by barrier, ``fetch`` downloads its results, ``cancel`` and ``jobs``
+manage the queue.  The address comes from ``--coordinator``, else the
+``DCRAD_COORDINATOR`` environment variable, else :data:`DEFAULT_ADDRESS`.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import grpc
+
+from dcrad.errors import DcradError, SceneFormatError
+from dcrad.objfile import inside_folder
+from dcrad.v1 import dcrad_pb2 as pb
+from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+from dcrad.wire import FileAssembler, file_chunks, safe_relpath
+
+__all__ = ["DEFAULT_ADDRESS", "channel", "scene_files", "submit", "watch", "fetch", "cancel", "list_jobs",
+           "rpc_message", "add_client_commands"]
+
+DEFAULT_ADDRESS = "127.0.0.1:50051"
+#: gRPC message size limit both ways: file chunks are 1 MB, leave room
+MAX_MESSAGE = 8 * 1024 * 1024
+#: attempts per call on UNAVAILABLE (gRPC caps it at 5; < 2 disables retries)
+RETRY_ATTEMPTS = 4
+#: deadline of the short unary calls (Cancel, ListJobs), seconds
+UNARY_TIMEOUT = 30.0
+TERMINAL = ("done", "failed", "cancelled")
+
+
+def resolve_address(address: str | None = None) -> str:
+    return address or os.environ.get("DCRAD_COORDINATOR") or DEFAULT_ADDRESS
+
+
+def channel(address: str, attempts: int | None = None) -> grpc.Channel:
+    """An insecure channel retrying UNAVAILABLE with exponential backoff, 8 MB messages."""
+    attempts = RETRY_ATTEMPTS if attempts is None else attempts
+    method = {"name": [{"service": "dcrad.v1.Coordinator"}]}
+    if attempts >= 2:
+        method["retryPolicy"] = {"maxAttempts": int(attempts), "initialBackoff": "0.2s", "maxBackoff": "2s",
+                                 "backoffMultiplier": 2, "retryableStatusCodes": ["UNAVAILABLE"]}
+    options = [("grpc.service_config", json.dumps({"methodConfig": [method]})),
+               ("grpc.enable_retries", 1 if attempts >= 2 else 0),
+               ("grpc.max_send_message_length", MAX_MESSAGE),
+               ("grpc.max_receive_message_length", MAX_MESSAGE)]
+    return grpc.insecure_channel(address, options=options)
+
+
+# -- scene files ---------------------------------------------------------------------------
+def _obj_refs(text: str, label: str, folder: str) -> list[str]:
+    refs = []
+    for no, raw in enumerate(text.splitlines(), 1):
+        parts = raw.split("#", 1)[0].split()
+        if len(parts) < 2 or parts[0] != "mtllib":
+            continue
+        name = " ".join(parts[1:]) if "#" in raw else raw.strip()[6:].strip()
+        where = f"{label} line {no}"
+        # like the loader: the whole rest of the line, else several names
+        names = [name] if os.path.isfile(inside_folder(folder, name, where, "mtllib")) else name.split()
+        for one in names:
+            inside_folder(folder, one, where, "mtllib")
+            refs.append(one)
+    return refs
+
+
+def _gltf_refs(blob: bytes, label: str, folder: str) -> list[str]:
+    try:
+        header = json.loads(blob.decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise SceneFormatError(f"cannot parse glTF {label}: {exc}") from None
+    refs = []
+    for kind in ("buffers", "images"):
+        items = header.get(kind, []) if isinstance(header, dict) else []
+        for i, item in enumerate(items if isinstance(items, list) else []):
+            uri = item.get("uri") if isinstance(item, dict) else None
+            if isinstance(uri, str) and not uri.startswith("data:"):
+                inside_folder(folder, uri, label, f"{kind[:-1]} {i}")
+                refs.append(uri)
+    return refs
+
+
+def scene_files(path) -> dict[str, bytes]:
+    """{relative path: bytes}: the scene file first, then the files it references."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in (".obj", ".gltf", ".glb"):
+        raise SceneFormatError(f"unsupported scene format '{ext}' for {path}; use .obj, .gltf or .glb")
+    folder = str(path.parent.resolve())
+    try:
+        main = path.read_bytes()
+    except OSError as exc:
+        raise SceneFormatError(f"cannot read scene file {path}: {exc.strerror or exc}") from None
+    if ext == ".obj":
+        refs = _obj_refs(main.decode("utf-8", errors="replace"), str(path), folder)
+    elif ext == ".gltf":
+        refs = _gltf_refs(main, str(path), folder)
+    else:
+        refs = []
+    files = {path.name: main}
+    for ref in refs:
+        rel = safe_relpath(os.path.relpath(inside_folder(folder, ref, str(path), "file"), folder).replace(os.sep, "/"))
+        if rel in files:
+            continue
+        try:
+            files[rel] = (path.parent / rel).read_bytes()
+        except OSError as exc:
+            raise SceneFormatError(f"{path}: referenced file '{ref}' cannot be read: {exc.strerror or exc}") from None
+    return files
+
+
+# -- calls ---------------------------------------------------------------------------------
+def _requests(scene: str, files: dict, solver: dict, divide: dict, preview: tuple[int, int] = (0, 0)):
+    yield pb.SubmitRequest(spec=pb.JobSpec(scene=scene, solver=pb.SolverSettings(**solver),
+                                           divide=pb.DivideSettings(**divide),
+                                           preview_width=preview[0], preview_height=preview[1]))
+    for rel, data in files.items():
+        for chunk in file_chunks(data, rel):
+            yield pb.SubmitRequest(file=chunk)
+
+
+def submit(address: str, path, solver: dict | None = None, divide: dict | None = None,
+           preview: tuple[int, int] = (0, 0)) -> pb.JobSummary:
+    """Upload the scene at ``path`` and its files with the settings; the new job's summary.
+
+    preview: (width, height) of the preview images in pixels; 0 means the default.
+    """
+    files = scene_files(path)
+    solver = {k: v for k, v in (solver or {}).items() if v is not None}
+    divide = {k: v for k, v in (divide or {}).items() if v is not None}
+    with channel(address) as ch:
+        return pb_grpc.CoordinatorStub(ch).Submit(_requests(next(iter(files)), files, solver, divide, preview))
+
+
+def watch(address: str, job_id: str, on_progress=None) -> pb.Progress | None:
+    """Follow the job until its Watch stream ends; the last Progress (None if none came)."""
+    last = None
+    with channel(address) as ch:
+        stream = pb_grpc.CoordinatorStub(ch).Watch(pb.JobRef(job_id=job_id))
+        try:
+            for last in stream:
+                if on_progress is not None:
+                    on_progress(last)
+        except BaseException:
+            stream.cancel()
+            raise
+    return last
+
+
+def fetch(address: str, job_id: str, out_dir) -> list[Path]:
+    """Download the job's result files under ``out_dir``; the paths written."""
+    asm, totals = FileAssembler(max_bytes=1 << 40), {}
+    with channel(address) as ch:
+        for chunk in pb_grpc.CoordinatorStub(ch).Fetch(pb.JobRef(job_id=job_id)):
+            asm.add(chunk)
+            totals[safe_relpath(chunk.path)] = chunk.total_bytes
+    out, written = Path(out_dir), []
+    for rel, buf in asm.files.items():
+        if len(buf) != totals[rel]:
+            raise DcradError(f"fetch of job '{job_id}': {rel} arrived with {len(buf)} of {totals[rel]} bytes")
+        target = out.joinpath(*rel.split("/"))
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(bytes(buf))
+        written.append(target)
+    return written
+
+
+def cancel(address: str, job_id: str) -> pb.JobSummary:
+    with channel(address) as ch:
+        return pb_grpc.CoordinatorStub(ch).Cancel(pb.JobRef(job_id=job_id), timeout=UNARY_TIMEOUT)
+
+
+def list_jobs(address: str) -> list[pb.JobSummary]:
+    with channel(address) as ch:
+        return list(pb_grpc.CoordinatorStub(ch).ListJobs(pb.ListJobsRequest(), timeout=UNARY_TIMEOUT).jobs)
+
+
+def rpc_message(exc: grpc.RpcError, address: str, job_id: str | None = None) -> str:
+    """One readable line for a failed call."""
+    code = exc.code() if hasattr(exc, "code") else None
+    details = ((exc.details() if hasattr(exc, "details") else "") or "").strip().splitlines()
+    details = details[0] if details else ""
+    if code == grpc.StatusCode.UNAVAILABLE:
+        return f"cannot reach coordinator at {address}"
+    if code == grpc.StatusCode.DEADLINE_EXCEEDED:
+        return f"coordinator at {address} did not answer in time"
+    if code == grpc.StatusCode.NOT_FOUND:
+        if job_id and job_id not in details:
+            return f"job '{job_id}' not found" + (f" ({details})" if details else "")
+        return details or "not found"
+    if code == grpc.StatusCode.UNIMPLEMENTED:
+        return f"{address} does not serve the dcrad coordinator API"
+    name = code.name.lower().replace("_", " ") if code is not None else "call failed"
+    return details or name
+
+
+# -- command line --------------------------------------------------------------------------
+def _handled(fn):
+    """Turn gRPC and dcrad errors into one line on stderr and exit code 2."""
+
+    @functools.wraps(fn)
+    def run(args) -> int:
+        try:
+            return fn(args)
+        except grpc.RpcError as exc:
+            msg = rpc_message(exc, resolve_address(args.coordinator), getattr(args, "job", None))
+        except DcradError as exc:
+            msg = str(exc)
+        print(f"dcrad: error: {msg}", file=sys.stderr)
+        return 2
+
+    return run
+
+
+class WatchBar:
+    """``[####----] 40% barrier 3 | residual 3.1e-02 -> 1.0e-02 | 2.30 Mrays/s | 00:12 | ETA 00:18``."""
+
+    def __init__(self, tol: float, stream=None, force: bool = False, width: int = 24):
+        self.tol, self.width = max(tol, 1e-300), width
+        self.stream = stream or sys.stderr
+        self.enabled = force or getattr(self.stream, "isatty", lambda: False)()
+        self.prev = None  # (elapsed, rays, residual) of the previous Progress
+        self.drawn = False
+
+    def line(self, p: pb.Progress) -> str:
+        r, t = p.ledger.residual if p.HasField("ledger") else p.job.residual, p.job.elapsed_s
+        rate, eta = 0.0, math.inf
+        if self.prev is not None and t > self.prev[0]:
+            dt = t - self.prev[0]
+            rate = max(0, p.rays - self.prev[1]) / dt
+            if 0 < r < self.prev[2]:
+                eta = max(0.0, math.log(r / self.tol) / (math.log(self.prev[2] / r) / dt))
+        self.prev = (t, p.rays, r)
+        frac = 1.0 if r <= self.tol or self.tol >= 1 else max(0.0, min(1.0, math.log(r) / math.log(self.tol)))
+        done = int(round(frac * self.width))
+        return (f"[{'#' * done}{'-' * (self.width - done)}] {100 * frac:3.0f}% barrier {p.barrier} | "
+                f"residual {r:.2e} -> {self.tol:.1e} | {rate / 1e6:.2f} Mrays/s | {_hms(t)} | ETA {_hms(eta)}")
+
+    def __call__(self, p: pb.Progress) -> None:
+        text = self.line(p)
+        if self.enabled:
+            self.stream.write("\r" + text)
+            self.stream.flush()
+            self.drawn = True
+
+    def close(self) -> None:
+        if self.drawn:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.drawn = False
+
+
+def _hms(s: float) -> str:
+    if not math.isfinite(s):
+        return "--:--"
+    s = int(round(s))
+    return f"{s // 60:02d}:{s % 60:02d}" if s < 3600 else f"{s // 3600}h{(s % 3600) // 60:02d}"
+
+
+def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
+    """Watch with a bar; print the final line; 0 when done, 1 otherwise, 130 on Ctrl-C."""
+    bar = WatchBar(tol, force=force)
+    try:
+        last = watch(address, job_id, bar)
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"dcrad: stopped watching job {job_id}; it keeps running on the coordinator", file=sys.stderr)
+        return 130
+    finally:
+        bar.close()
+    if last is None:
+        print(f"dcrad: error: the coordinator sent no progress for job {job_id}", file=sys.stderr)
+        return 1
+    job = last.job
+    print(f"dcrad: job {job.job_id or job_id} {job.state}: residual {last.ledger.residual:.2e}, ledger closure "
+          f"{last.ledger.closure:.1e}, {last.barrier} barriers, {last.rays:,} rays in {job.elapsed_s:.1f} s")
+    if job.state == "done":
+        return 0
+    reason = job.error or ("cancelled" if job.state == "cancelled" else f"watch ended while it is {job.state}")
+    print(f"dcrad: job {job.job_id or job_id} {job.state}: {reason}", file=sys.stderr)
+    return 1
+
+
+@_handled
+def cmd_submit(args) -> int:
+    from dcrad.pipeline import resolve_scene
+
+    address = resolve_address(args.coordinator)
+    solver = dict(tol=args.tol, seed=args.seed, time_limit=args.time_limit, max_rays=args.max_rays,
+                  rays_per_power=args.rays_per_power, patch_size=args.patch_size, scale=args.scale)
+    divide = dict(subscenes=args.subscenes, mode=args.boundary, iterations=args.iterations)
+    with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
+        job = submit(address, resolve_scene(args.scene, Path(tmp)), solver, divide)
+    print(job.job_id, flush=True)
+    if not args.wait:
+        return 0
+    code = _follow(address, job.job_id, args.tol, args.progress)
+    if code != 0:
+        return code
+    out = Path(args.out) if args.out else Path("out") / job.job_id
+    files = fetch(address, job.job_id, out)
+    print(f"dcrad: wrote {', '.join(f.name for f in files)} in {out}")
+    return 0
+
+
+@_handled
+def cmd_watch(args) -> int:
+    return _follow(resolve_address(args.coordinator), args.job, args.tol, args.progress)
+
+
+@_handled
+def cmd_fetch(args) -> int:
+    out = Path(args.out) if args.out else Path("out") / args.job
+    files = fetch(resolve_address(args.coordinator), args.job, out)
+    print(f"dcrad: wrote {', '.join(f.name for f in files) or 'no files'} in {out}")
+    return 0
+
+
+@_handled
+def cmd_cancel(args) -> int:
+    job = cancel(resolve_address(args.coordinator), args.job)
+    print(f"dcrad: job {job.job_id or args.job} {job.state}")
+    return 0
+
+
+@_handled
+def cmd_jobs(args) -> int:
+    jobs = list_jobs(resolve_address(args.coordinator))
+    rows = [("ID", "STATE", "SCENE", "SUBSCENES", "WORKERS", "ELAPSED", "RESIDUAL")]
+    rows += [(j.job_id, j.state, j.scene, str(j.subscenes), str(len(j.workers)), f"{j.elapsed_s:.1f}s",
+              f"{j.residual:.2e}") for j in jobs]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    for r in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip())
+    return 0
+
+
+def add_client_commands(subparsers) -> None:
+    """Add submit, watch, fetch, cancel and jobs to the ``dcrad`` subcommands."""
+    from dcrad.config import SolverConfig
+
+    d = SolverConfig()
+
+    def command(name, func, help):
+        p = subparsers.add_parser(name, help=help)
+        p.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                       help=f"coordinator address (default $DCRAD_COORDINATOR or {DEFAULT_ADDRESS})")
+        p.set_defaults(func=func)
+        return p
+
+    def progress_flag(p):
+        p.add_argument("--progress", action="store_true", help="draw the progress bar even when stderr is not a terminal")
+
+    p = command("submit", cmd_submit, "upload a scene to the coordinator as a job; prints the job id")
+    p.add_argument("scene", help="an .obj/.gltf/.glb file (with its .mtl, buffers, images) or a built-in scene")
+    p.add_argument("--subscenes", type=int, default=0, help="k subscenes (default 0: one per registered worker)")
+    p.add_argument("--boundary", choices=("binned", "exact"), default="binned", help="boundary mode")
+    p.add_argument("--iterations", type=int, default=0, help="batches per subscene between barriers (0: default)")
+    p.add_argument("--tol", type=float, default=d.tol, help=f"stop at this residual (default {d.tol})")
+    p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
+    p.add_argument("--time-limit", type=float, default=0.0, help="stop after this many seconds (0: none)")
+    p.add_argument("--max-rays", type=int, default=0, help="stop after this many rays (0: none)")
+    p.add_argument("--patch-size", type=float, default=0.0, help="largest patch edge in metres (0: automatic)")
+    p.add_argument("--rays-per-power", type=float, default=d.rays_per_power,
+                   help=f"rays for shooting the emitted power once (default {d.rays_per_power:g})")
+    p.add_argument("--scale", type=float, default=1.0, help="multiply scene coordinates by this")
+    p.add_argument("--wait", action="store_true", help="watch the job and fetch its results when done")
+    p.add_argument("--out", default=None, help="with --wait: results folder (default ./out/<job id>)")
+    progress_flag(p)
+
+    p = command("watch", cmd_watch, "follow a job's progress until it ends")
+    p.add_argument("job", help="job id")
+    p.add_argument("--tol", type=float, default=d.tol, help=f"tolerance the bar counts towards (default {d.tol})")
+    progress_flag(p)
+
+    p = command("fetch", cmd_fetch, "download a finished job's result files")
+    p.add_argument("job", help="job id")
+    p.add_argument("--out", default=None, help="output folder (default ./out/<job id>)")
+
+    p = command("cancel", cmd_cancel, "cancel a job")
+    p.add_argument("job", help="job id")
+
+    command("jobs", cmd_jobs, "list the coordinator's jobs")
