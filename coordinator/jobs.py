@@ -209,6 +209,9 @@ class JobManager:
                                  "max_barrier_closure": max(run.barrier_closures),
                                  "reassigned": [h.reassigned for h in handles],
                                  "bytes_relayed": sum(h.bytes_relayed for h in handles),
+                                 "checkpoint_bytes": sum(h.checkpoint_bytes for h in handles),
+                                 "compute_seconds": [h.compute_s for h in handles],
+                                 "rpc_seconds": [h.rpc_seconds for h in handles],
                                  "partition": part.as_dict()}
             write_json(out / "report.json", report)
             job.report = report

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
 
 import grpc
@@ -145,6 +146,10 @@ class RemoteSubscene:
         self._collected = None
         self._last_batches = 0
         self._state0 = sub.state()
+        #: s of wall time in each kind of rpc (includes the worker's compute for iterate)
+        self.rpc_seconds = {"load": 0.0, "iterate": 0.0, "deliver": 0.0, "checkpoint": 0.0}
+        self.checkpoint_bytes = 0  #: bytes of checkpoints fetched
+        self.compute_s = 0.0  #: s the workers spent iterating this subscene
 
     # -- placement --------------------------------------------------------------
     def _load(self, w: WorkerEntry) -> None:
@@ -157,7 +162,9 @@ class RemoteSubscene:
             for c in arrays_to_chunks(arrays):
                 yield pb.LoadRequest(array=c)
 
+        t0 = time.perf_counter()
         self._status = w.stub().Load(requests(), timeout=self.timeout)
+        self.rpc_seconds["load"] += time.perf_counter() - t0
         self.worker = w
 
     def place(self) -> None:
@@ -189,8 +196,10 @@ class RemoteSubscene:
 
     # -- the handle interface ------------------------------------------------------
     def _iterate_once(self, n: int):
+        t0 = time.perf_counter()
         replies = self.worker.stub().Iterate(pb.IterateRequest(key=self.key, batches=n), timeout=self.timeout)
         arrays, status = _gather(replies)
+        self.rpc_seconds["iterate"] += time.perf_counter() - t0
         kind = RayParcel if self.mode == "exact" else TwinBuffer
         return kind.from_arrays(arrays), status
 
@@ -203,6 +212,8 @@ class RemoteSubscene:
             except grpc.RpcError as exc:
                 self._failover(exc)
         before = self._status.rays if self._status is not None else 0
+        prev = self._status.compute_s if self._status is not None else 0.0
+        self.compute_s += max(0.0, status.compute_s - prev) if status.compute_s >= prev else status.compute_s
         self._status, self._collected = status, buf
         return status.rays - before
 
@@ -220,8 +231,13 @@ class RemoteSubscene:
                     for c in arrays_to_chunks(arrays):
                         yield pb.DeliverRequest(array=c)
 
+                t0 = time.perf_counter()
                 self._status = self.worker.stub().Deliver(requests(), timeout=self.timeout)
+                t1 = time.perf_counter()
                 self.checkpoint = self._fetch_checkpoint()
+                self.rpc_seconds["deliver"] += t1 - t0
+                self.rpc_seconds["checkpoint"] += time.perf_counter() - t1
+                self.checkpoint_bytes += sum(a.nbytes for a in self.checkpoint.values())
                 return
             except grpc.RpcError as exc:
                 # the new worker starts from the previous barrier: replay this barrier's

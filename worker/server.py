@@ -13,6 +13,7 @@ import asyncio
 import json
 import logging
 import signal
+import time
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -31,10 +32,10 @@ log = logging.getLogger("dcrad.worker")
 MAX_MESSAGE = 8 * 1024 * 1024
 
 
-def status_of(key: pb.SubsceneKey, sub: Subscene) -> pb.SubsceneStatus:
+def status_of(key: pb.SubsceneKey, sub: Subscene, compute_s: float = 0.0) -> pb.SubsceneStatus:
     st = sub.state()
     return pb.SubsceneStatus(key=key, ledger=ledger_to_pb(st.ledger), shots=st.shots, rays=st.rays,
-                             twin_entries=st.twin_entries, twin_bytes=st.twin_bytes)
+                             twin_entries=st.twin_entries, twin_bytes=st.twin_bytes, compute_s=compute_s)
 
 
 class WorkerServicer(pb_grpc.WorkerServicer):
@@ -43,6 +44,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
     def __init__(self):
         self.subscenes: dict[tuple[str, int], Subscene] = {}
         self.locks: dict[tuple[str, int], asyncio.Lock] = {}
+        self.compute: dict[tuple[str, int], float] = {}  #: s spent in iterate per subscene
 
     def _get(self, key: pb.SubsceneKey, context):
         k = (key.job_id, key.cell)
@@ -79,11 +81,13 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         if sub is None:
             await context.abort(grpc.StatusCode.NOT_FOUND, f"no subscene {k} on this worker")
         async with self.locks[k]:
+            t0 = time.perf_counter()
             await asyncio.to_thread(sub.iterate, max(1, request.batches))
+            self.compute[k] = self.compute.get(k, 0.0) + time.perf_counter() - t0
             out = sub.collect()
             for chunk in arrays_to_chunks(out.to_arrays()):
                 yield pb.IterateReply(array=chunk)
-            yield pb.IterateReply(status=status_of(request.key, sub))
+            yield pb.IterateReply(status=status_of(request.key, sub, self.compute[k]))
 
     async def Deliver(self, request_iterator, context):
         key = None
@@ -105,7 +109,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad boundary buffer: {exc}")
         async with self.locks[k]:
             sub.deliver(buf)
-        return status_of(key, sub)
+        return status_of(key, sub, self.compute.get(k, 0.0))
 
     async def Checkpoint(self, request, context):
         sub, k = self._get(request, context)
@@ -120,6 +124,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         k = (request.job_id, request.cell)
         self.subscenes.pop(k, None)
         self.locks.pop(k, None)
+        self.compute.pop(k, None)
         return pb.Empty()
 
 

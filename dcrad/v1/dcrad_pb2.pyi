@@ -247,20 +247,22 @@ class LoadRequest(_message.Message):
     def __init__(self, header: _Optional[_Union[SubsceneHeader, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...
 
 class SubsceneStatus(_message.Message):
-    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes")
+    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes", "compute_s")
     KEY_FIELD_NUMBER: _ClassVar[int]
     LEDGER_FIELD_NUMBER: _ClassVar[int]
     SHOTS_FIELD_NUMBER: _ClassVar[int]
     RAYS_FIELD_NUMBER: _ClassVar[int]
     TWIN_ENTRIES_FIELD_NUMBER: _ClassVar[int]
     TWIN_BYTES_FIELD_NUMBER: _ClassVar[int]
+    COMPUTE_S_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
     ledger: Ledger
     shots: int
     rays: int
     twin_entries: int
     twin_bytes: int
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ...) -> None: ...
+    compute_s: float
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ..., compute_s: _Optional[float] = ...) -> None: ...
 
 class IterateRequest(_message.Message):
     __slots__ = ("key", "batches")
