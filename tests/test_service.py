@@ -195,3 +195,17 @@ def test_documented_errors(office, tmp_path):
         files = fetch(cluster.address, job.job_id)
     report = json.loads(bytes(files["report.json"]))
     assert report["stats"]["stopped_by"] == "stopped" and report["ledger"]["closure"] < 1e-12
+
+
+def test_health_service_on_both(tmp_path):
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    with LocalCluster(workers=1, data=tmp_path) as cluster:
+        targets = {cluster.address: "dcrad.v1.Coordinator",
+                   f"127.0.0.1:{cluster.worker_ports[0]}": "dcrad.v1.Worker"}
+        for address, service in targets.items():
+            with grpc.insecure_channel(address) as ch:
+                stub = health_pb2_grpc.HealthStub(ch)
+                for name in ("", service):
+                    reply = stub.Check(health_pb2.HealthCheckRequest(service=name), timeout=10)
+                    assert reply.status == health_pb2.HealthCheckResponse.SERVING, (address, name)
