@@ -46,6 +46,8 @@ class SolverConfig:
     batch_rays           int    rays per Embree call (top-K shooters at once)   262144
     max_shooters         int    most patches shot in one Embree call (K)        4096
     snapshot_factor      float  snapshots at geometric steps of this ratio      1.25
+    overshoot            float  ambient overshooting strength (0: plain         1.0
+                                progressive refinement; see solve.py)
     ===================  =====  ==============================================  ========
 
     Rays per shot are proportional to the power shot (a fixed power per ray,
@@ -62,6 +64,7 @@ class SolverConfig:
     batch_rays: int = 262144
     max_shooters: int = 4096
     snapshot_factor: float = 1.25
+    overshoot: float = 1.0
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str) -> None:
@@ -78,6 +81,7 @@ class SolverConfig:
              f"batch_rays={self.batch_rays} must be >= max_rays_per_shot={self.max_rays_per_shot}")
         need(self.max_shooters >= 1, f"max_shooters={self.max_shooters} must be >= 1")
         need(self.snapshot_factor > 1.0, f"snapshot_factor={self.snapshot_factor} must be > 1")
+        need(0.0 <= self.overshoot <= 1.0, f"overshoot={self.overshoot} must be in [0, 1]")
 
     def replace(self, **changes) -> "SolverConfig":
         return dataclasses.replace(self, **changes)

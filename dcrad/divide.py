@@ -103,22 +103,14 @@ class Subscene(Solver):
 
     # == sources: patches and outgoing twins, one ranking ========================
     def select_all(self):
-        cfg, p = self.config, self.patches
-        p_power = p.unshot * p.area[:, None]
+        """Patches and outgoing twins ranked together by power: (idx, counts, power (k,3) W, amounts)."""
+        p = self.patches
+        amounts = self.shoot_amounts()
         _, _, _, _, t_power = self.pending.entries()
-        power = np.concatenate([p_power, t_power.reshape(-1, 3)])
-        scalar = power.sum(axis=1)
-        n = len(scalar)
-        if n == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), power[:0]
-        k = min(cfg.max_shooters, n)
-        idx = np.argpartition(-scalar, k - 1)[:k] if k < n else np.arange(n)
-        idx = idx[np.argsort(-scalar[idx], kind="stable")]
-        idx = idx[scalar[idx] > 0.0]
-        counts = np.clip(np.ceil(scalar[idx] / self.power_per_ray), cfg.min_rays, cfg.max_rays_per_shot).astype(np.int64)
-        fits = np.cumsum(counts) <= cfg.batch_rays
-        fits[:1] = True
-        return idx[fits], counts[fits], power[idx[fits]]
+        power = np.concatenate([amounts * p.area[:, None], t_power.reshape(-1, 3)])
+        idx, counts = self.rank(power)
+        patch = idx < len(p)
+        return idx, counts, power[idx], amounts[idx[patch]]
 
     def twin_rays(self, entries: np.ndarray, counts: np.ndarray, power: np.ndarray) -> RayBatch:
         """Rays from outgoing twins: points in the portal cell, directions inside the bin."""
@@ -164,21 +156,15 @@ class Subscene(Solver):
         return len(batch)
 
     def _commit(self, batch: RayBatch, tally) -> None:
-        p = self.patches
-        absorbed = deposit(p, tally.received)
+        absorbed = deposit(self.patches, tally.received)
         misrouted = self.record_crossings(batch, tally)
-        led = self.ledger
-        led.absorbed = led.absorbed + absorbed
-        led.escaped = led.escaped + tally.escaped
-        led.back_faces = led.back_faces + tally.back_faces + misrouted
-        led.unshot = p.unshot_power
-        led.in_flight = self._in_flight()
-        self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
+        self.account(batch.power, tally, absorbed, misrouted)
+        self.ledger.in_flight = self._in_flight()
 
     def step(self) -> int:
         if self.mode == "exact" and len(self.forward):
             return self.step_forwarded()
-        idx, counts, power = self.select_all()
+        idx, counts, power, amounts = self.select_all()
         if len(idx) == 0:
             return 0
         p = self.patches
@@ -197,7 +183,7 @@ class Subscene(Solver):
         self.stats.trace_seconds += time.perf_counter() - t0
 
         # Commit: shooters give up their power; receivers keep rho of what arrived
-        p.unshot[idx[is_patch]] = 0.0
+        p.unshot[idx[is_patch]] -= amounts
         if len(twin_idx):
             self.pending.take(twin_idx)
         self._commit(batch, tally)
@@ -500,7 +486,8 @@ def checkpoint_arrays(sub: Subscene) -> dict:
     rng = json.dumps(sub.rng.bit_generator.state).encode()
     return {
         "radiosity": sub.patches.radiosity, "unshot": sub.patches.unshot,
-        "ledger": np.stack([getattr(led, a) for a in ACCOUNTS]),
+        "ledger": np.stack([getattr(led, a) for a in ACCOUNTS + ("unshot_abs",)]),
+        "ambient_tallies": np.stack([sub._shot_abs, sub._received_abs, sub._reflected_abs]),
         "stats": np.array([sub.stats.shots, sub.stats.rays, sub.stats.batches], np.int64),
         "trace_seconds": np.array([sub.stats.trace_seconds]),
         "back_by_obj": sub.back_by_obj,
@@ -518,8 +505,11 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
                 arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy())
     sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode)
     if "ledger" in arrays:  # resume from a checkpoint
-        for a, row in zip(ACCOUNTS, arrays["ledger"]):
+        for a, row in zip(ACCOUNTS + ("unshot_abs",), arrays["ledger"]):
             setattr(sub.ledger, a, np.array(row, np.float64))
+        if "ambient_tallies" in arrays:
+            sub._shot_abs, sub._received_abs, sub._reflected_abs = (np.array(r, np.float64)
+                                                                     for r in arrays["ambient_tallies"])
         sub.stats.shots, sub.stats.rays, sub.stats.batches = (int(x) for x in arrays["stats"])
         sub.stats.trace_seconds = float(arrays["trace_seconds"][0])
         sub.back_by_obj = np.array(arrays["back_by_obj"], np.float64)

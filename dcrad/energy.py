@@ -39,6 +39,7 @@ class Ledger:
     back_faces: np.ndarray = field(default_factory=_zeros)  #: W, rays that hit a back face
     unshot: np.ndarray = field(default_factory=_zeros)  #: W, sum of dB * A over patches
     in_flight: np.ndarray = field(default_factory=_zeros)  #: W, power held in twin buffers
+    unshot_abs: np.ndarray = field(default_factory=_zeros)  #: W, sum of |dB| * A (dB < 0 after overshooting)
     imported: np.ndarray = field(default_factory=_zeros)  #: W, received from neighbours (subscenes)
     exported: np.ndarray = field(default_factory=_zeros)  #: W, handed to neighbours (subscenes)
 
@@ -54,14 +55,19 @@ class Ledger:
         return float(np.abs(self.emitted + self.imported - self.accounted()).sum() / total)
 
     def residual(self) -> float:
-        """Share of the emitted power not yet settled: (unshot + in flight) / emitted."""
+        """Share of the emitted power not yet settled: (|unshot| + |in flight|) / emitted.
+
+        Overshooting leaves negative unshot radiosity behind, so the residual counts
+        magnitudes: a signed sum could vanish while power still has to move.
+        """
         total = float(self.emitted.sum())
         if total <= 0.0:
             return 0.0
-        return float((self.unshot.sum() + self.in_flight.sum()) / total)
+        unshot = np.maximum(self.unshot_abs, np.abs(self.unshot))
+        return float((unshot.sum() + np.abs(self.in_flight).sum()) / total)
 
     def __iadd__(self, other: "Ledger") -> "Ledger":
-        for name in ACCOUNTS:
+        for name in ACCOUNTS + ("unshot_abs",):
             setattr(self, name, getattr(self, name) + getattr(other, name))
         return self
 
@@ -69,7 +75,7 @@ class Ledger:
         return Ledger(**{k: np.array(v, np.float64) for k, v in self.as_arrays().items()})
 
     def as_arrays(self) -> dict:
-        return {name: getattr(self, name) for name in ACCOUNTS}
+        return {name: getattr(self, name) for name in ACCOUNTS + ("unshot_abs",)}
 
     def as_dict(self) -> dict:
         """JSON-ready: every account as [r, g, b] W, plus closure and residual."""

@@ -5,6 +5,22 @@ ledger.  ``step()`` shoots the top-K unshot patches in one Embree call;
 ``run()`` steps until the residual tolerance, the time limit, the ray budget
 or an external stop request, recording snapshots of B at geometric intervals
 of rays for the error-against-time report.
+
+Ambient overshooting (after Feda and Purgathofer's overshooting, with Cohen et
+al.'s ambient term).  In a stiff scene (rho near 1) plain shooting needs
+ln(tol)/ln(rho) bounces.  Most of that tail is spatially smooth: the
+irradiance still to come is close to uniform.  We estimate it,
+
+    g = q * U / ((1 - lambda) * A_total)      (W/m^2, per channel)
+
+from the signed unshot power U, the share q of shot power that lands on a
+surface, and the return ratio lambda = reflected / shot measured so far.  A
+shooter i then shoots dB_i + rho_i * g, the light it will reflect once that
+irradiance arrives, and keeps dB_i = -rho_i * g (negative).  When the light
+does arrive it cancels the negative unshot; what the estimate got wrong is
+still unshot (either sign) and is shot like anything else.  Everything stays
+a shot of real rays, so the ledger closes exactly and the limit is the same;
+only the number of bounces drops.  ``overshoot`` scales g (0: plain).
 """
 
 from __future__ import annotations
@@ -67,39 +83,91 @@ class Solver:
         self.rng = np.random.default_rng(self.config.seed)
         self.ledger = Ledger(emitted=patches.emitted_power.copy())
         self.ledger.unshot = patches.unshot_power.copy()
+        self.ledger.unshot_abs = (np.abs(patches.unshot) * patches.area[:, None]).sum(axis=0)
+        self._shot_abs = np.zeros(3)  #: W shot so far (magnitudes), for the return ratio
+        self._received_abs = np.zeros(3)  #: W that landed on patches
+        self._reflected_abs = np.zeros(3)  #: W kept as unshot radiosity
         self.stats = Stats()
         self.back_by_obj = np.zeros(max(len(patches.names), 1))
         emitted = float(self.ledger.emitted.sum())
         #: W carried by one ray (fixed power per ray)
         self.power_per_ray = emitted / self.config.rays_per_power if emitted > 0 else 1.0
+        #: W below which a shooter is not worth a ray (round-off of the overshoot arithmetic)
+        self._negligible = 1e-12 * max(emitted, 1e-300)
         self.snapshots: list[Snapshot] = []
         self.snapshot_B: list[np.ndarray] = []
         self._next_snapshot = 0
         self._t0 = time.perf_counter()
 
     # == one Embree call ===========================================================
-    def select(self):
-        """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W)."""
-        cfg, p = self.config, self.patches
-        power = p.unshot * p.area[:, None]
-        scalar = power.sum(axis=1)
+    def ambient(self) -> np.ndarray:
+        """(3,) W/m^2: the irradiance still to arrive, as if spread uniformly (see module doc)."""
+        p = self.patches
+        if self.config.overshoot <= 0 or len(p) == 0:
+            return np.zeros(3)
+        a_total = float(p.area.sum())
+        if self._shot_abs.sum() > 0:
+            lam = self._reflected_abs / np.maximum(self._shot_abs, 1e-300)
+            q = self._received_abs / np.maximum(self._shot_abs, 1e-300)
+        else:  # before the first shot: a closed scene with the mean reflectance
+            lam = (p.rho * p.area[:, None]).sum(axis=0) / a_total
+            q = np.ones(3)
+        lam = np.clip(lam, 0.0, 1.0 - 1e-6)
+        u = self.ledger.unshot + self.ledger.in_flight
+        return self.config.overshoot * q * u / ((1.0 - lam) * a_total)
+
+    def shoot_amounts(self) -> np.ndarray:
+        """(n,3) W/m^2 each patch would shoot now: dB plus its overshoot rho * g."""
+        g = self.ambient()
+        if not g.any():
+            return self.patches.unshot
+        return self.patches.unshot + self.patches.rho * g
+
+    def rank(self, power: np.ndarray):
+        """Top-K shooters by |power| (m,3) W and their ray counts (fixed power per ray)."""
+        cfg = self.config
+        scalar = np.abs(power).sum(axis=1)
         n = len(scalar)
+        if n == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         k = min(cfg.max_shooters, n)
-        # Top-K by unshot power, largest first
+        # Top-K by power, largest first
         idx = np.argpartition(-scalar, k - 1)[:k] if k < n else np.arange(n)
         idx = idx[np.argsort(-scalar[idx], kind="stable")]
-        idx = idx[scalar[idx] > 0.0]
+        idx = idx[scalar[idx] > self._negligible]
         # Rays in proportion to power, clamped; fill the batch's ray budget
         counts = np.clip(np.ceil(scalar[idx] / self.power_per_ray), cfg.min_rays, cfg.max_rays_per_shot)
         counts = counts.astype(np.int64)
         fits = np.cumsum(counts) <= cfg.batch_rays
         fits[:1] = True
-        idx, counts = idx[fits], counts[fits]
-        return idx, counts, power[idx]
+        return idx[fits], counts[fits]
+
+    def select(self):
+        """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2)."""
+        p = self.patches
+        amounts = self.shoot_amounts()
+        power = amounts * p.area[:, None]
+        idx, counts = self.rank(power)
+        return idx, counts, power[idx], amounts[idx]
+
+    def account(self, shot: np.ndarray, tally, absorbed: np.ndarray, extra_lost=0.0) -> None:
+        """Book one batch: ledger accounts and the return-ratio tallies used by ``ambient``."""
+        p = self.patches
+        led = self.ledger
+        led.absorbed = led.absorbed + absorbed
+        led.escaped = led.escaped + tally.escaped
+        led.back_faces = led.back_faces + tally.back_faces + extra_lost
+        led.unshot = p.unshot_power
+        led.unshot_abs = (np.abs(p.unshot) * p.area[:, None]).sum(axis=0)
+        received = np.abs(tally.received).sum(axis=0)
+        self._shot_abs += np.abs(shot).sum(axis=0)
+        self._received_abs += received
+        self._reflected_abs += received - np.abs(absorbed)
+        self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
 
     def step(self) -> int:
         """Shoot one batch; return the number of rays traced (0 when nothing is unshot)."""
-        idx, counts, power = self.select()
+        idx, counts, power, amounts = self.select()
         if len(idx) == 0:
             return 0
         p = self.patches
@@ -108,15 +176,11 @@ class Solver:
         tally = trace(self.tracer, batch, p)
         self.stats.trace_seconds += time.perf_counter() - t0
 
-        # Commit: shooters give up their unshot power, receivers keep rho of what arrived
-        p.unshot[idx] = 0.0
+        # Commit: shooters give up what they shot (dB - amount: 0, or -rho*g when
+        # overshooting), receivers keep rho of what arrived
+        p.unshot[idx] -= amounts
         absorbed = deposit(p, tally.received)
-        led = self.ledger
-        led.absorbed = led.absorbed + absorbed
-        led.escaped = led.escaped + tally.escaped
-        led.back_faces = led.back_faces + tally.back_faces
-        led.unshot = p.unshot_power
-        self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
+        self.account(power, tally, absorbed)
 
         self.stats.shots += len(idx)
         self.stats.rays += len(batch)

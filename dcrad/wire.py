@@ -103,14 +103,14 @@ def assemble_arrays(chunks: Iterable[pb.ArrayChunk]) -> dict:
 
 def ledger_to_pb(led: Ledger) -> pb.Ledger:
     msg = pb.Ledger(closure=led.closure(), residual=led.residual())
-    for name in ACCOUNTS:
+    for name in ACCOUNTS + ("unshot_abs",):
         getattr(msg, name).extend(float(x) for x in getattr(led, name))
     return msg
 
 
 def ledger_from_pb(msg: pb.Ledger) -> Ledger:
     led = Ledger()
-    for name in ACCOUNTS:
+    for name in ACCOUNTS + ("unshot_abs",):
         values = list(getattr(msg, name))
         setattr(led, name, np.array(values if values else [0.0, 0.0, 0.0], np.float64))
     return led

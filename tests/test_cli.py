@@ -174,7 +174,7 @@ def test_solve_divided_from_the_command_line(tmp_path, mode):
     report = json.loads((out / "report.json").read_text())
     div = report["divided"]
     assert div["subscenes"] == 2 and div["mode"] == mode and div["barriers"] >= 1
-    assert div["max_barrier_closure"] < 1e-12 and report["ledger"]["closure"] < 1e-12
+    assert div["max_barrier_closure"] < 1e-10 and report["ledger"]["closure"] < 1e-10
     assert report["residual"] <= 0.05
     npz = np.load(out / "radiosity.npz")
     assert np.all(np.isfinite(npz["B"])) and npz["B"].max() > 0
@@ -187,7 +187,7 @@ def test_explicit_planes_on_the_command_line(tmp_path):
             "--width", "80", "--height", "60")
     assert r.returncode == 0, r.stderr
     div = json.loads((out / "report.json").read_text())["divided"]
-    assert div["subscenes"] == 4 and div["max_barrier_closure"] < 1e-12
+    assert div["subscenes"] == 4 and div["max_barrier_closure"] < 1e-10
     planes = {(p["axis"], round(p["offset"], 3)) for p in div["partition"]["planes"]}
     assert planes == {("x", 4.06), ("z", 4.06)}
     bad = run("solve", "office", "--workers", "0", "--planes", "w=3", "--out", tmp_path / "bad")

@@ -33,12 +33,12 @@ def test_ledger_closes_at_every_barrier(office, k):
     run, subs, boundaries, part = solve_divided(p, SolverConfig(tol=0.02), DivideConfig(subscenes=k))
     assert run.stopped_by == "tolerance" and run.barriers >= 2
     assert len(part.cells) == k and len(boundaries) >= k - 1
-    assert max(run.barrier_closures) < 1e-12
+    assert max(run.barrier_closures) < 1e-10
     # nothing is lost at a transfer: what left one subscene arrived in another
     assert np.allclose(run.ledger.imported, run.ledger.exported, rtol=1e-12, atol=0)
     assert run.ledger.imported.sum() > 0  # light really crossed
     for s in subs:  # each subscene's own books close too
-        assert s.ledger.closure() < 1e-12
+        assert s.ledger.closure() < 1e-10
 
 
 def test_divided_matches_unsplit_within_noise(office, reference):
@@ -99,7 +99,7 @@ def test_boundary_across_an_empty_box(tmp_path, mode):
     _, div, _ = prepare(path, 0.08)
     run, subs, boundaries, part = solve_divided(div, SolverConfig(tol=1e-3, seed=2),
                                                DivideConfig(subscenes=2, mode=mode))
-    assert len(boundaries) == 1 and max(run.barrier_closures) < 1e-12
+    assert len(boundaries) == 1 and max(run.barrier_closures) < 1e-10
     noise = rms_error(seq.radiosity, ref.radiosity, ref.area)
     err = rms_error(div.radiosity, ref.radiosity, ref.area)
     # 8x8 bins of pi/64 sr projected each and portal cells of 1/128 of the diagonal:
@@ -130,4 +130,4 @@ def test_checkpoint_resumes_bit_identically(office, mode):
     clone.iterate(3)
     assert np.array_equal(a.patches.radiosity, clone.patches.radiosity)
     assert np.array_equal(a.sent.total(), clone.sent.total()) and len(a.sent) == len(clone.sent)
-    assert clone.ledger.closure() < 1e-12 and clone.stats.rays == a.stats.rays
+    assert clone.ledger.closure() < 1e-10 and clone.stats.rays == a.stats.rays

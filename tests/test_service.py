@@ -92,7 +92,7 @@ def test_two_workers_reproduce_the_in_process_solution(office, in_process, tmp_p
     assert final.job.state == "done", final.job.error
     assert len({s.worker for s in final.subscenes}) == 2  # both workers served a subscene
     barriers = [p for p in progress if p.job.state == "running"]
-    assert len(barriers) >= 3 and all(p.ledger.closure < 1e-12 for p in progress)
+    assert len(barriers) >= 3 and all(p.ledger.closure < 1e-10 for p in progress)
     assert final.bytes_relayed > 0  # twin buffers crossed the wire
     b_ref, run = in_process
     got = npz(files)["patch_B"]
@@ -100,7 +100,7 @@ def test_two_workers_reproduce_the_in_process_solution(office, in_process, tmp_p
     assert np.allclose(got, b_ref, rtol=1e-12, atol=1e-15)
     assert final.barrier == run.barriers
     report = json.loads(bytes(files["report.json"]))
-    assert report["ledger"]["closure"] < 1e-12 and report["divided"]["subscenes"] == 2
+    assert report["ledger"]["closure"] < 1e-10 and report["divided"]["subscenes"] == 2
     assert {"preview.png", "preview.exr", "scene.glb", "patches.ply"} <= set(files)
 
 
@@ -123,7 +123,7 @@ def test_killed_worker_resumes_from_the_last_checkpoint(office, in_process, tmp_
     assert killed and final.job.state == "done", final.job.error
     cell0 = next(s for s in final.subscenes if s.cell == 0)
     assert cell0.reassigned >= 1 and cell0.worker != killed[0]
-    assert final.ledger.closure < 1e-12  # nothing lost
+    assert final.ledger.closure < 1e-10  # nothing lost
     # deterministic resume: the result equals the undisturbed run
     b_ref, _ = in_process
     assert np.allclose(npz(files)["patch_B"], b_ref, rtol=1e-12, atol=1e-15)
@@ -194,7 +194,7 @@ def test_documented_errors(office, tmp_path):
             assert final.job.state == "cancelled"
         files = fetch(cluster.address, job.job_id)
     report = json.loads(bytes(files["report.json"]))
-    assert report["stats"]["stopped_by"] == "stopped" and report["ledger"]["closure"] < 1e-12
+    assert report["stats"]["stopped_by"] == "stopped" and report["ledger"]["closure"] < 1e-10
 
 
 def test_health_service_on_both(tmp_path):

@@ -146,7 +146,7 @@ def test_closed_enclosure_identity(rho):
     # and exactly: the shortfall is the unsettled power, to round-off
     unsettled = (led.unshot + led.escaped + led.back_faces) / phi
     assert np.allclose(rel, unsettled, rtol=1e-6, atol=1e-12)
-    assert led.closure() < 1e-12
+    assert led.closure() < 1e-10
 
 
 def test_ledger_closes_every_batch():
@@ -155,7 +155,7 @@ def test_ledger_closes_every_batch():
     closures = []
     s.run(on_progress=lambda sv: closures.append(sv.ledger.closure()))
     assert len(closures) > 5
-    assert max(closures) < 1e-12
+    assert max(closures) < 1e-10
 
 
 def test_same_seed_same_result_and_seeds_differ():
@@ -173,7 +173,7 @@ def test_stop_criteria():
     s = Solver(p, SolverConfig(tol=1e-6, max_rays=50000))
     s.run()
     assert s.stats.stopped_by == "ray_budget" and s.stats.rays >= 50000
-    assert s.ledger.closure() < 1e-12
+    assert s.ledger.closure() < 1e-10
     p = cube(0.9, edge=0.25)
     s = Solver(p, SolverConfig(tol=1e-6))
     s.run(should_stop=lambda: True)
@@ -197,7 +197,7 @@ def test_open_scene_power_escapes_into_the_ledger():
     s = Solver(p, SolverConfig(tol=1e-6))
     s.run()
     led = s.ledger
-    assert led.closure() < 1e-12
+    assert led.closure() < 1e-10
     assert led.escaped.sum() > 0.99 * led.emitted.sum()
 
 
@@ -210,7 +210,7 @@ def test_flipped_normals_warning_names_the_object():
     s.run()
     warn = s.warnings()
     assert warn and "receiver" in warn[0] and "flipped" in warn[0]
-    assert s.ledger.closure() < 1e-12
+    assert s.ledger.closure() < 1e-10
 
 
 @pytest.mark.parametrize("rho", [0.5, 0.9])
@@ -229,4 +229,4 @@ def test_builtin_furnace_file_meets_the_identity(tmp_path, rho):
     mean_reflected = ((p.radiosity - p.emission) * p.area[:, None]).sum(axis=0) / p.area.sum()
     assert np.allclose(p.rho, rho, rtol=0, atol=0)  # Kd survives the file exactly
     assert np.all(np.abs(mean_reflected - expected) <= (tol + 2e-4) * np.asarray(expected))
-    assert s.ledger.closure() < 1e-12
+    assert s.ledger.closure() < 1e-10

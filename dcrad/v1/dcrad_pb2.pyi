@@ -35,7 +35,7 @@ class FileChunk(_message.Message):
     def __init__(self, path: _Optional[str] = ..., offset: _Optional[int] = ..., total_bytes: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class Ledger(_message.Message):
-    __slots__ = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported", "closure", "residual")
+    __slots__ = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported", "closure", "residual", "unshot_abs")
     EMITTED_FIELD_NUMBER: _ClassVar[int]
     ABSORBED_FIELD_NUMBER: _ClassVar[int]
     ESCAPED_FIELD_NUMBER: _ClassVar[int]
@@ -46,6 +46,7 @@ class Ledger(_message.Message):
     EXPORTED_FIELD_NUMBER: _ClassVar[int]
     CLOSURE_FIELD_NUMBER: _ClassVar[int]
     RESIDUAL_FIELD_NUMBER: _ClassVar[int]
+    UNSHOT_ABS_FIELD_NUMBER: _ClassVar[int]
     emitted: _containers.RepeatedScalarFieldContainer[float]
     absorbed: _containers.RepeatedScalarFieldContainer[float]
     escaped: _containers.RepeatedScalarFieldContainer[float]
@@ -56,7 +57,8 @@ class Ledger(_message.Message):
     exported: _containers.RepeatedScalarFieldContainer[float]
     closure: float
     residual: float
-    def __init__(self, emitted: _Optional[_Iterable[float]] = ..., absorbed: _Optional[_Iterable[float]] = ..., escaped: _Optional[_Iterable[float]] = ..., back_faces: _Optional[_Iterable[float]] = ..., unshot: _Optional[_Iterable[float]] = ..., in_flight: _Optional[_Iterable[float]] = ..., imported: _Optional[_Iterable[float]] = ..., exported: _Optional[_Iterable[float]] = ..., closure: _Optional[float] = ..., residual: _Optional[float] = ...) -> None: ...
+    unshot_abs: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, emitted: _Optional[_Iterable[float]] = ..., absorbed: _Optional[_Iterable[float]] = ..., escaped: _Optional[_Iterable[float]] = ..., back_faces: _Optional[_Iterable[float]] = ..., unshot: _Optional[_Iterable[float]] = ..., in_flight: _Optional[_Iterable[float]] = ..., imported: _Optional[_Iterable[float]] = ..., exported: _Optional[_Iterable[float]] = ..., closure: _Optional[float] = ..., residual: _Optional[float] = ..., unshot_abs: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SolverSettings(_message.Message):
     __slots__ = ("tol", "time_limit", "max_rays", "seed", "rays_per_power", "patch_size", "scale")
