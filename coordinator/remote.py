@@ -136,7 +136,7 @@ class RemoteSubscene:
         self.key = pb.SubsceneKey(job_id=job_id, cell=sub.cell)
         self.header = pb.SubsceneHeader(key=self.key, config_json=json.dumps(sub.config.as_dict()),
                                         power_per_ray=sub.power_per_ray, mode=sub.mode,
-                                        names=list(sub.patches.names))
+                                        names=list(sub.patches.names), local_target=sub.local_target)
         self.static = subscene_arrays(sub)
         self.checkpoint: dict | None = None  #: state after the last barrier
         self.worker: WorkerEntry | None = None

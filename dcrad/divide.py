@@ -79,10 +79,12 @@ class Subscene(Solver):
     """
 
     def __init__(self, cell: int, patches: Patches, boundaries: list[Boundary], config: SolverConfig,
-                 power_per_ray: float, mode: str = "binned"):
+                 power_per_ray: float, mode: str = "binned", local_target: float = 0.0):
         tri = [patches.triangles] + [b.triangles() for b in boundaries]
         super().__init__(patches, config, tracer=Tracer(np.concatenate(tri)))
         self.cell = cell
+        #: adaptive doIterations: stop a barrier's iterations once the local residual is below this
+        self.local_target = local_target
         self.boundaries = list(boundaries)
         self.power_per_ray = power_per_ray
         self.rng = np.random.default_rng([config.seed, cell])
@@ -222,10 +224,29 @@ class Subscene(Solver):
         return lost
 
     # == the handle interface used by run_divided ================================
+    def local_residual(self) -> float:
+        """What is left to do here: (|unshot| + |pending twins|) / (emitted + imported)."""
+        led = self.ledger
+        total = float((led.emitted + led.imported).sum())
+        if total <= 0:
+            return 0.0
+        extra = self.forward.total() if self.mode == "exact" else 0.0
+        pending = np.abs(self.pending.total() + extra).sum()
+        return float((np.maximum(led.unshot_abs, np.abs(led.unshot)).sum() + pending) / total)
+
     def iterate(self, n: int) -> int:
-        """doIterations: up to n batches; returns rays traced."""
+        """doIterations: up to n batches; returns rays traced.
+
+        Adaptive (``local_target`` > 0): stop once the local residual has fallen to
+        a quarter of what it was when this barrier's iterations began, or below
+        ``local_target``, whichever is larger.  A subscene then does a fixed share
+        of its own work per barrier however much light it was handed.
+        """
         rays = 0
+        goal = max(self.local_target, 0.25 * self.local_residual()) if self.local_target > 0 else 0.0
         for _ in range(n):
+            if goal > 0 and self.local_residual() <= goal:
+                break
             r = self.step()
             if r == 0:
                 break
@@ -363,7 +384,11 @@ class DivideConfig:
     name         type   meaning                                          default
     ===========  =====  ===============================================  =======
     subscenes    int    number of cells k (1: no partition, no twins)    2
-    iterations   int    batches per subscene between barriers            4
+    iterations   int    batches per subscene between barriers (the       4
+                        most, when adaptive)
+    adaptive     bool   iterate until the subscene's own residual is     True
+                        below tol/2, up to max_iterations batches
+    max_iterations int  cap of adaptive iterations per barrier           64
     solid        int    direction bins per side: SOLIDANGLES = solid^2   8
     cell_size    float  portal cell edge (m); 0: 1/128 of the diagonal   0
     mode         str    "binned" twins (the paper) or "exact" rays      binned
@@ -372,14 +397,20 @@ class DivideConfig:
 
     subscenes: int = 2
     iterations: int = 4
+    adaptive: bool = True
+    max_iterations: int = 64
     solid: int = 8
     cell_size: float = 0.0
     mode: str = "binned"
 
+    @property
+    def batches_per_barrier(self) -> int:
+        return self.max_iterations if self.adaptive else self.iterations
+
     def __post_init__(self):
         from .errors import ConfigError
 
-        if (self.subscenes < 1 or self.iterations < 1 or self.solid < 1 or self.cell_size < 0
+        if (self.subscenes < 1 or self.iterations < 1 or self.max_iterations < 1 or self.solid < 1 or self.cell_size < 0
                 or self.mode not in ("binned", "exact")):
             raise ConfigError(f"invalid divide setting: {self}")
 
@@ -415,7 +446,8 @@ def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig
     subs = []
     for cell, (sub, _) in zip(part.cells, pieces):
         touching = [b for b in boundaries if cell.id in (b.side_a, b.side_b)]
-        subs.append(Subscene(cell.id, sub, touching, config, per_ray, divide.mode))
+        subs.append(Subscene(cell.id, sub, touching, config, per_ray, divide.mode,
+                             local_target=0.5 * config.tol if divide.adaptive else 0.0))
     return subs, boundaries, [par for _, par in pieces], part
 
 
@@ -433,7 +465,7 @@ def solve_divided(patches: Patches, config: SolverConfig | None = None, divide: 
     def assemble_B():
         return assemble(len(patches), patches.area, parents, pieces)
 
-    run = run_divided(subs, boundaries, config, divide.iterations, executor,
+    run = run_divided(subs, boundaries, config, divide.batches_per_barrier, executor,
                       assemble_B if record else None, **run_kwargs)
     patches.radiosity = assemble_B()
     patches.unshot = assemble(len(patches), patches.area, parents, pieces, [s.patches.unshot for s in subs])
@@ -497,13 +529,13 @@ def checkpoint_arrays(sub: Subscene) -> dict:
 
 
 def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: str, names: list[str],
-                   arrays: dict) -> Subscene:
+                   arrays: dict, local_target: float = 0.0) -> Subscene:
     """Rebuild a subscene from ``subscene_arrays`` (plus ``checkpoint_arrays`` to resume)."""
     import json
 
     p = Patches(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
                 arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy())
-    sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode)
+    sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode, local_target)
     if "ledger" in arrays:  # resume from a checkpoint
         for a, row in zip(ACCOUNTS + ("unshot_abs",), arrays["ledger"]):
             setattr(sub.ledger, a, np.array(row, np.float64))

@@ -66,7 +66,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             arrays = asm.result()
             config = SolverConfig(**json.loads(header.config_json))
             sub = await asyncio.to_thread(build_subscene, header.key.cell, config, header.power_per_ray,
-                                          header.mode or "binned", list(header.names), arrays)
+                                          header.mode or "binned", list(header.names), arrays,
+                                          header.local_target)
         except (DcradError, KeyError, TypeError, ValueError) as exc:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot load subscene: {exc}")
         k = (header.key.job_id, header.key.cell)

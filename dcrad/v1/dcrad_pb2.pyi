@@ -227,18 +227,20 @@ class SubsceneKey(_message.Message):
     def __init__(self, job_id: _Optional[str] = ..., cell: _Optional[int] = ...) -> None: ...
 
 class SubsceneHeader(_message.Message):
-    __slots__ = ("key", "config_json", "power_per_ray", "mode", "names")
+    __slots__ = ("key", "config_json", "power_per_ray", "mode", "names", "local_target")
     KEY_FIELD_NUMBER: _ClassVar[int]
     CONFIG_JSON_FIELD_NUMBER: _ClassVar[int]
     POWER_PER_RAY_FIELD_NUMBER: _ClassVar[int]
     MODE_FIELD_NUMBER: _ClassVar[int]
     NAMES_FIELD_NUMBER: _ClassVar[int]
+    LOCAL_TARGET_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
     config_json: str
     power_per_ray: float
     mode: str
     names: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., config_json: _Optional[str] = ..., power_per_ray: _Optional[float] = ..., mode: _Optional[str] = ..., names: _Optional[_Iterable[str]] = ...) -> None: ...
+    local_target: float
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., config_json: _Optional[str] = ..., power_per_ray: _Optional[float] = ..., mode: _Optional[str] = ..., names: _Optional[_Iterable[str]] = ..., local_target: _Optional[float] = ...) -> None: ...
 
 class LoadRequest(_message.Message):
     __slots__ = ("header", "array")
