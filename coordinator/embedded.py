@@ -3,7 +3,9 @@
 ``LocalCluster`` starts real processes (``python -m dcrad.cli coordinator`` and
 ``worker``) on free ports, waits until every worker has registered, and stops
 them all (SIGTERM, then SIGKILL after a grace period) when the ``with`` block
-ends.  ``kill_worker(i)`` is there for the worker-loss tests.
+ends.  ``kill_worker(i)`` is there for the worker-loss tests.  The coordinator's
+web status pages listen on a free loopback port (``web_url``) unless
+``web=False``.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ import grpc
 from dcrad.errors import DcradError
 
 
-def _read_port(proc: subprocess.Popen, role: str, timeout: float) -> int:
+def _read_port(proc: subprocess.Popen, role: str, timeout: float, on_line=None) -> int:
+    """The gRPC port from the 'listening on host:port' line; earlier lines go to ``on_line``."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         line = proc.stdout.readline()
@@ -28,6 +31,8 @@ def _read_port(proc: subprocess.Popen, role: str, timeout: float) -> int:
             if proc.poll() is not None:
                 raise DcradError(f"the {role} process exited with code {proc.returncode} before listening")
             continue
+        if on_line is not None:
+            on_line(line)
         if "listening on" in line:
             return int(line.strip().rsplit(":", 1)[1])
     raise DcradError(f"the {role} did not start listening within {timeout:.0f} s")
@@ -38,7 +43,7 @@ class LocalCluster:
 
     def __init__(self, workers: int = 2, data: str | Path | None = None, python: str = sys.executable,
                  log_dir: str | Path | None = None, start_timeout: float = 60.0,
-                 coordinator_args: tuple[str, ...] = (), port: int = 0):
+                 coordinator_args: tuple[str, ...] = (), port: int = 0, web: bool = True):
         self.n_workers = workers
         self._tmp = None if data else tempfile.TemporaryDirectory(prefix="dcrad-cluster-")
         self.data = Path(data or self._tmp.name)
@@ -47,6 +52,8 @@ class LocalCluster:
         self.start_timeout = start_timeout
         self.coordinator_args = tuple(coordinator_args)
         self.port = port
+        self.web = web
+        self.web_url = ""  #: "http://127.0.0.1:PORT" of the status pages ("" when off)
         self.coordinator: subprocess.Popen | None = None
         self.workers: list[subprocess.Popen] = []
         self.worker_ports: list[int] = []
@@ -92,9 +99,17 @@ class LocalCluster:
 
     def __enter__(self) -> "LocalCluster":
         try:
+            web = ("--web-port", "0", "--web-host", "127.0.0.1") if self.web else ("--web-port", "-1")
+            if "--web-port" in self.coordinator_args:
+                web = ()
             self.coordinator = self._spawn("coordinator", "--port", str(self.port), "--data",
-                                           str(self.data / "coordinator"), *self.coordinator_args)
-            port = _read_port(self.coordinator, "coordinator", self.start_timeout)
+                                           str(self.data / "coordinator"), *web, *self.coordinator_args)
+
+            def on_line(line: str) -> None:
+                if " web on " in line:
+                    self.web_url = line.strip().rsplit(" ", 1)[1]
+
+            port = _read_port(self.coordinator, "coordinator", self.start_timeout, on_line)
             self.address = f"127.0.0.1:{port}"
             for _ in range(self.n_workers):
                 self.start_worker()

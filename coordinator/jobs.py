@@ -3,12 +3,19 @@
 Each job runs ``dcrad.divide.run_divided`` (the same loop as in-process runs) in
 a thread, over ``RemoteSubscene`` handles; progress after every barrier is
 kept on the job and pushed to watchers on the event loop.
+
+For the web status page (``coordinator.web``) the job thread also keeps, at
+barriers, a small preview image (``LivePreview``: at most one per barrier and
+one per ``preview_interval`` seconds, plus always the final state) and the
+assembled radiosity at geometrically spaced times (``ErrorCurve``), from which
+the RMS error against the final solution is measured when the run ends.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import shutil
 import threading
 import time
@@ -22,8 +29,9 @@ import numpy as np
 
 from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, assemble, build_subscenes
+from dcrad.energy import rms_error
 from dcrad.errors import DcradError
-from dcrad.pipeline import prepare, write_outputs
+from dcrad.pipeline import _is_floor_plan, prepare, write_outputs
 from dcrad.report import residual_estimate, run_report, write_json
 from dcrad.solve import Solver
 from dcrad.v1 import dcrad_pb2 as pb
@@ -34,6 +42,112 @@ from .remote import NoWorkers, RemoteSubscene, WorkerPool
 log = logging.getLogger("dcrad.coordinator")
 
 TERMINAL = {"done", "failed", "cancelled"}
+STATES = ("queued", "running", "done", "failed", "cancelled")
+
+
+class LivePreview:
+    """Preview PNGs of the assembled radiosity, for the status page.
+
+    ``due()`` is true at most once per ``interval`` seconds; the job renders at a
+    barrier only when it is due, so previews come once per barrier or once per
+    interval, whichever is rarer (and once more for the final state).  Runs in the
+    job thread.  ``current`` is (version, barrier, png bytes), replaced atomically;
+    version 0 means no preview yet.  A failing render is logged and turns
+    previews off; it never fails the job.
+    """
+
+    def __init__(self, scene, patches, folder: Path, size=(320, 240), interval: float = 2.0):
+        self.scene, self.patches, self.folder = scene, patches, Path(folder)
+        self.size, self.interval = size, interval
+        self.current: tuple[int, int, bytes] = (0, -1, b"")
+        self.seconds = 0.0  #: total render time
+        self._last = -math.inf
+        self._view = None  # (camera, mask, tracer), built on first use
+        self._broken = False
+
+    @property
+    def barrier(self) -> int:
+        return self.current[1]
+
+    def close(self) -> None:
+        """Free the scene, patch table and tracer; ``current`` stays for the page."""
+        self.scene = self.patches = self._view = None
+        self._broken = True
+
+    def due(self) -> bool:
+        return not self._broken and time.monotonic() - self._last >= self.interval
+
+    def _setup(self):
+        from dcrad import render
+        from dcrad.rays import Tracer
+
+        p, (w, h) = self.patches, self.size
+        mask = None
+        if self.scene.camera:
+            cam = render.camera_from_dict(self.scene.camera, w, h)
+        elif _is_floor_plan(p):
+            cam, mask = render.topdown_camera(p, w, h), render.cutaway_mask(p)
+        else:
+            cam = render.auto_camera(p, w, h)
+        idx = np.arange(len(p)) if mask is None else np.flatnonzero(mask)
+        return cam, mask, Tracer(p.triangles[idx])
+
+    def render(self, b: np.ndarray, barrier: int) -> None:
+        if self._broken:
+            return
+        from dcrad import export, render
+
+        t0 = time.perf_counter()
+        try:
+            if self._view is None:
+                self._view = self._setup()
+            cam, mask, tracer = self._view
+            corners = render.corner_radiosity(self.patches, values=b)
+            img = render.render(self.patches, cam, mask=mask, corner_values=corners, tracer=tracer)
+            path = self.folder / "preview-live.png"
+            export.write_png(path, render.tonemap(img))
+            self.current = (self.current[0] + 1, barrier, path.read_bytes())
+        except Exception:  # a preview must never stop a solve
+            self._broken = True
+            log.warning("preview rendering failed; no more previews for this job\n%s", traceback.format_exc())
+        self.seconds += time.perf_counter() - t0
+        self._last = time.monotonic()
+
+
+class ErrorCurve:
+    """RMS error against wall time: what the status page plots.
+
+    While running, the assembled B (float32) is kept at geometrically spaced
+    times (each kept time >= ``ratio`` times the previous, plus the latest), so
+    memory grows with log(run time), not with the barriers.  ``measure`` then
+    computes each kept state's area-weighted RMS error against the final B and
+    frees the states.
+    """
+
+    def __init__(self, ratio: float = 1.05, cap: int = 400):
+        self.ratio, self.cap = ratio, cap
+        self.kept: list[tuple[float, int, np.ndarray]] = []  # (elapsed s, barrier, B)
+        self._tail = False  # the last kept entry is only "the latest"
+        self.measured: list[tuple[float, float, int]] | None = None  # (elapsed s, rms W/m^2, barrier)
+        self.label = ""
+
+    def record(self, t: float, barrier: int, b: np.ndarray) -> None:
+        if self._tail:
+            self.kept.pop()
+        anchor = self.kept[-1][0] if self.kept else None
+        self.kept.append((t, barrier, np.asarray(b, np.float32).copy()))
+        self._tail = anchor is not None and t < anchor * self.ratio
+        if len(self.kept) > self.cap:  # a very long run: halve the density
+            last = self.kept[-1]
+            self.kept = self.kept[:-1:2] + [last]
+            self.ratio *= self.ratio
+
+    def measure(self, final: np.ndarray, area: np.ndarray, label: str, final_barrier: int | None = None) -> None:
+        """RMS error of each kept state against ``final``; the final state itself (0 by
+        construction, float32 round-off in practice) is left out."""
+        self.measured = [(t, rms_error(b, final, area), k) for t, k, b in self.kept if k != final_barrier]
+        self.label = label
+        self.kept = []
 
 
 @dataclass
@@ -43,6 +157,7 @@ class Job:
     root: Path  #: job folder: scene/ (upload) and out/ (results)
     state: str = "queued"
     error: str = ""
+    created: float = field(default_factory=time.time)
     started: float = 0.0
     finished: float = 0.0
     subscenes: int = 0
@@ -51,6 +166,8 @@ class Job:
     updates: list = field(default_factory=list)  #: pb.Progress per barrier
     cancel: threading.Event = field(default_factory=threading.Event)
     report: dict | None = None
+    preview: LivePreview | None = None
+    curve: ErrorCurve = field(default_factory=ErrorCurve)
     _waiters: list = field(default_factory=list)  #: (loop, asyncio.Event) of watchers
 
     def summary(self) -> pb.JobSummary:
@@ -90,14 +207,28 @@ def solver_config(s: pb.SolverSettings) -> SolverConfig:
 class JobManager:
     """All jobs of a coordinator; jobs run in threads."""
 
-    def __init__(self, root: Path, pool: WorkerPool, worker_wait: float = 60.0, rpc_timeout: float = 300.0):
+    def __init__(self, root: Path, pool: WorkerPool, worker_wait: float = 60.0, rpc_timeout: float = 300.0,
+                 preview_interval: float = 2.0, preview_size: tuple[int, int] = (320, 240)):
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         self.pool = pool
         self.jobs: dict[str, Job] = {}
         self.worker_wait = worker_wait
         self.rpc_timeout = rpc_timeout
-        self.metrics = {"barriers": 0, "rays": 0, "bytes_relayed": 0}
+        self.preview_interval, self.preview_size = preview_interval, preview_size
+        #: counters over all jobs, updated at every barrier (for /metrics)
+        self.metrics = {"barriers": 0, "rays": 0, "bytes_relayed": 0, "previews": 0}
+        self._metrics_lock = threading.Lock()
+
+    def count(self, **deltas) -> None:
+        with self._metrics_lock:
+            for k, v in deltas.items():
+                self.metrics[k] += v
+
+    def counters(self) -> dict:
+        """A consistent copy of the metrics counters."""
+        with self._metrics_lock:
+            return dict(self.metrics)
 
     def get(self, job_id: str) -> Job | None:
         return self.jobs.get(job_id)
@@ -147,6 +278,9 @@ class JobManager:
             log.error("job %s crashed:\n%s", job.id, traceback.format_exc())
         finally:
             job.finished = time.time()
+            job.curve.kept = []  # a failed job frees its snapshots too
+            if job.preview is not None:
+                job.preview.close()
             # one last message carrying the final state, so every watcher sees the end
             final = pb.Progress()
             if job.updates:
@@ -174,28 +308,40 @@ class JobManager:
             job.workers = sorted({h.worker.address for h in handles})
             pieces = [s.patches for s in subs]
 
+            job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
+            done = {"rays": 0, "bytes_relayed": 0}  # counted into the metrics so far
+
             def on_barrier(run):
                 values = [h.radiosity() for h in handles]
                 b = assemble(len(patches), patches.area, parents, pieces, values)
                 job.residual = run.ledger.residual()
                 job.workers = sorted({h.worker.address for h in handles})
-                job.updates.append(self._progress(job, run, handles, b, patches.area))
-                self.metrics["barriers"] += 1
+                progress = self._progress(job, run, handles, b, patches.area)
+                job.updates.append(progress)
+                job.curve.record(progress.job.elapsed_s, run.barriers, b)
+                now = {"rays": progress.rays, "bytes_relayed": progress.bytes_relayed}
+                self.count(barriers=1, **{k: max(0, now[k] - done[k]) for k in now})
+                done.update(now)
                 job.notify()
+                if job.preview.due():
+                    job.preview.render(b, run.barriers)
+                    self.count(previews=1)
 
             from dcrad.divide import run_divided
 
             with ThreadPoolExecutor(max_workers=len(handles)) as ex:
-                run = run_divided(handles, boundaries, config, divide.iterations, ex,
+                run = run_divided(handles, boundaries, config, divide.batches_per_barrier, ex,
                                   on_barrier=on_barrier, should_stop=job.cancel.is_set)
-            self.metrics["rays"] += run.snapshots[-1].rays
-            self.metrics["bytes_relayed"] += sum(h.bytes_relayed for h in handles)
 
             # Results: the same files as `dcrad solve`
             patches.radiosity = assemble(len(patches), patches.area, parents, pieces,
                                          [h.radiosity() for h in handles])
             unshot = [h.checkpoint["unshot"] if h.checkpoint else h.static["unshot"] for h in handles]
             patches.unshot = assemble(len(patches), patches.area, parents, pieces, unshot)
+            if job.preview.barrier != run.barriers:  # always show the final state
+                job.preview.render(patches.radiosity, run.barriers)
+                self.count(previews=1)
+            job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), run.barriers)
             solver = Solver(patches, config)
             solver.adopt_divided(run)
             out = job.root / "out"
@@ -212,7 +358,9 @@ class JobManager:
                                  "checkpoint_bytes": sum(h.checkpoint_bytes for h in handles),
                                  "compute_seconds": [h.compute_s for h in handles],
                                  "rpc_seconds": [h.rpc_seconds for h in handles],
+                                 "preview_seconds": job.preview.seconds,
                                  "partition": part.as_dict()}
+            report["error_curve"] = self.curve_dict(job)
             write_json(out / "report.json", report)
             job.report = report
             job.residual = run.ledger.residual()
@@ -220,6 +368,33 @@ class JobManager:
         finally:
             for h in handles:
                 h.drop()
+
+    @staticmethod
+    def _measured_label(run, config: SolverConfig) -> str:
+        if run.stopped_by == "tolerance":
+            return f"measured against the final solution (converged to the residual tol {config.tol:g})"
+        why = {"stopped": "when cancelled", "time_limit": "at the time limit",
+               "ray_budget": "at the ray budget"}.get(run.stopped_by, f"at the end ({run.stopped_by})")
+        return (f"measured against the state {why} (residual {run.ledger.residual():.1e}; "
+                f"not the converged solution)")
+
+    @staticmethod
+    def curve_dict(job: Job) -> dict:
+        """RMS error against wall time: the live estimate per barrier; the measured curve after the run.
+
+        Points are [elapsed s, rms W/m^2, barrier] in both series.
+        """
+        est, seen = [], set()
+        for p in list(job.updates):
+            if p.barrier > 0 and p.barrier not in seen:  # the closing message repeats the last barrier
+                seen.add(p.barrier)
+                est.append([p.job.elapsed_s, p.rms_estimate, p.barrier])
+        measured = job.curve.measured
+        return {"unit": "W/m^2", "time": "s since the job started running",
+                "estimate": {"label": "live estimate from the residual (converged solution unknown)",
+                             "points": est},
+                "measured": None if measured is None else {"label": job.curve.label,
+                                                           "points": [list(m) for m in measured]}}
 
     def _progress(self, job: Job, run, handles, b: np.ndarray, area: np.ndarray) -> pb.Progress:
         snap = run.snapshots[-1]

@@ -1,7 +1,8 @@
 """Coordinator service (grpc.aio): the servicer maps domain errors to status codes.
 
 Handlers stay thin: uploads are assembled with ``dcrad.wire``, jobs live in
-``JobManager``, workers in ``WorkerPool``.  Only this module turns DcradError
+``JobManager``, workers in ``WorkerPool``.  ``serve`` also starts the web status
+endpoint (``coordinator.web``) on the same event loop.  Only this module turns DcradError
 into gRPC status codes: INVALID_ARGUMENT for a bad scene, NOT_FOUND for an
 unknown job, RESOURCE_EXHAUSTED for an upload over the limit,
 FAILED_PRECONDITION for results of a job that is not done.
@@ -107,10 +108,15 @@ class CoordinatorServicer(pb_grpc.CoordinatorServicer):
 
 async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "dcrad-coordinator",
                 max_upload: int = MAX_UPLOAD, worker_wait: float = 60.0, ready=None, stop: asyncio.Event | None = None,
-                web_port: int | None = None, web_host: str | None = None) -> None:
-    """Run the coordinator until SIGTERM/SIGINT (or ``stop``); ``ready(port)`` once listening."""
+                web_port: int | None = None, web_host: str = "127.0.0.1", web_ready=None,
+                preview_interval: float = 2.0) -> None:
+    """Run the coordinator until SIGTERM/SIGINT (or ``stop``); ``ready(port)`` once listening.
+
+    web_port : the status pages' port (0: any free port; None: no web endpoint), on
+               ``web_host``, served on this same event loop; ``web_ready(url)`` once bound.
+    """
     pool = WorkerPool()
-    manager = JobManager(Path(root), pool, worker_wait=worker_wait)
+    manager = JobManager(Path(root), pool, worker_wait=worker_wait, preview_interval=preview_interval)
     server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
                                       ("grpc.max_send_message_length", MAX_MESSAGE)])
     pb_grpc.add_CoordinatorServicer_to_server(CoordinatorServicer(manager, max_upload), server)
@@ -121,6 +127,18 @@ async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "
     await health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
     await health_servicer.set("dcrad.v1.Coordinator", health_pb2.HealthCheckResponse.SERVING)
     log.info("coordinator listening on %s:%d, jobs in %s", host, bound, root)
+    runner = None
+    if web_port is not None:
+        from .web import start_web
+
+        try:
+            runner, web_url = await start_web(manager, web_host, web_port)
+        except OSError as exc:
+            await server.stop(grace=None)
+            raise DcradError(f"web status page: cannot listen on {web_host}:{web_port}: {exc.strerror or exc}") from None
+        log.info("status pages on %s", web_url)
+        if web_ready is not None:
+            web_ready(web_url)
     if ready is not None:
         ready(bound)
     stop = stop or asyncio.Event()
@@ -132,4 +150,6 @@ async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "
             pass
     await stop.wait()
     await health_servicer.enter_graceful_shutdown()
+    if runner is not None:
+        await runner.cleanup()
     await server.stop(grace=2.0)

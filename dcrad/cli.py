@@ -188,6 +188,8 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
                 job = client.submit(cluster.address, path, solver, divide, (args.width, args.height))
             except client.grpc.RpcError as exc:
                 raise DcradError(client.rpc_message(exc, cluster.address)) from None
+            if cluster.web_url:
+                print(f"dcrad: status page {cluster.web_url}/jobs/{job.job_id} (while this runs)", file=sys.stderr)
             bar = client.WatchBar(config.tol, force=args.progress)
             cancelled = []
             previous = signal.signal(signal.SIGINT, stop)
@@ -239,8 +241,15 @@ def cmd_coordinator(args) -> int:
 
     from coordinator.server import serve
 
+    def web_ready(url: str) -> None:
+        # machine-readable too: LocalCluster reads the status page's address from it
+        print(f"dcrad coordinator web on {url}", flush=True)
+
+    web_port = args.web_port if args.web_port >= 0 else None
     asyncio.run(serve(port=args.port, host=args.host, root=args.data, max_upload=args.max_upload,
-                      worker_wait=args.worker_wait, ready=_announce("coordinator", args.host)))
+                      worker_wait=args.worker_wait, ready=_announce("coordinator", args.host),
+                      web_port=web_port, web_host=args.web_host or args.host, web_ready=web_ready,
+                      preview_interval=args.preview_interval))
     return 0
 
 
@@ -277,6 +286,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-upload", type=int, default=int(env.get("DCRAD_MAX_UPLOAD", str(512 * 1024 * 1024))),
                    help="largest scene upload in bytes")
     p.add_argument("--worker-wait", type=float, default=60.0, help="seconds a job waits for a first worker")
+    p.add_argument("--web-port", type=int, default=int(env.get("DCRAD_WEB_PORT", "8080")),
+                   help="port of the web status pages (default 8080; 0: any free port; -1: off)")
+    p.add_argument("--web-host", default=env.get("DCRAD_WEB_HOST"),
+                   help="address the status pages bind (default: the same as --host)")
+    p.add_argument("--preview-interval", type=float, default=2.0,
+                   help="seconds between preview images of a running job (at most one per barrier)")
     p.set_defaults(func=cmd_coordinator)
 
     p = sub.add_parser("worker", help="run a gRPC worker that registers with a coordinator")

@@ -48,6 +48,8 @@ class SolverConfig:
     snapshot_factor      float  snapshots at geometric steps of this ratio      1.25
     overshoot            float  ambient overshooting strength (0: plain         1.0
                                 progressive refinement; see solve.py)
+    overshoot_min_return float  overshoot only when the measured return ratio   0.85
+                                (reflected / shot) is at least this (stiff)
     ===================  =====  ==============================================  ========
 
     Rays per shot are proportional to the power shot (a fixed power per ray,
@@ -65,6 +67,7 @@ class SolverConfig:
     max_shooters: int = 4096
     snapshot_factor: float = 1.25
     overshoot: float = 1.0
+    overshoot_min_return: float = 0.85
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str) -> None:

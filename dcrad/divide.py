@@ -83,7 +83,7 @@ class Subscene(Solver):
         tri = [patches.triangles] + [b.triangles() for b in boundaries]
         super().__init__(patches, config, tracer=Tracer(np.concatenate(tri)))
         self.cell = cell
-        #: adaptive doIterations: stop a barrier's iterations once the local residual is below this
+        #: adaptive doIterations: W of local residual below which a barrier's iterations stop
         self.local_target = local_target
         self.boundaries = list(boundaries)
         self.power_per_ray = power_per_ray
@@ -102,6 +102,10 @@ class Subscene(Solver):
             raise ConfigError(f"boundary mode must be 'binned' or 'exact', not {mode!r}")
         self._offset = ray_offset(patches) if len(patches) else 1e-6
         self._by_id = {b.id: i for i, b in enumerate(self.boundaries)}
+
+    def ambient(self) -> np.ndarray:
+        """Subscenes never overshoot (see solve.py): signed twin power does not settle."""
+        return np.zeros(3)
 
     # == sources: patches and outgoing twins, one ranking ========================
     def select_all(self):
@@ -150,7 +154,7 @@ class Subscene(Solver):
             part.origins[sel] += (self._offset * side[sel])[:, None] * b.normal[None, :]
         batch = RayBatch(part.origins, part.dirs, part.power, np.zeros(len(part), np.int64))
         t0 = time.perf_counter()
-        tally = trace(self.tracer, batch, self.patches)
+        tally = trace(self.tracer, batch, self.patches, self.channels)
         self.stats.trace_seconds += time.perf_counter() - t0
         self._commit(batch, tally)
         self.stats.rays += len(batch)
@@ -181,7 +185,7 @@ class Subscene(Solver):
             batches.append(self.twin_rays(twin_idx, counts[~is_patch], power[~is_patch]))
         batch = batches[0] if len(batches) == 1 else RayBatch(
             *(np.concatenate([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "power", "shooter")))
-        tally = trace(self.tracer, batch, p)
+        tally = trace(self.tracer, batch, p, self.channels)
         self.stats.trace_seconds += time.perf_counter() - t0
 
         # Commit: shooters give up their power; receivers keep rho of what arrived
@@ -225,21 +229,20 @@ class Subscene(Solver):
 
     # == the handle interface used by run_divided ================================
     def local_residual(self) -> float:
-        """What is left to do here: (|unshot| + |pending twins|) / (emitted + imported)."""
+        """W left to move here: |unshot| + |pending twins| (absolute, comparable across subscenes)."""
         led = self.ledger
-        total = float((led.emitted + led.imported).sum())
-        if total <= 0:
-            return 0.0
         extra = self.forward.total() if self.mode == "exact" else 0.0
         pending = np.abs(self.pending.total() + extra).sum()
-        return float((np.maximum(led.unshot_abs, np.abs(led.unshot)).sum() + pending) / total)
+        return float(np.maximum(led.unshot_abs, np.abs(led.unshot)).sum() + pending)
 
     def iterate(self, n: int) -> int:
         """doIterations: up to n batches; returns rays traced.
 
-        Adaptive (``local_target`` > 0): stop once the local residual has fallen to
-        a quarter of what it was when this barrier's iterations began, or below
-        ``local_target``, whichever is larger.  A subscene then does a fixed share
+        Adaptive (``local_target`` > 0, in W): stop once the local residual has
+        fallen to a quarter of what it was when this barrier's iterations began,
+        or below ``local_target``, whichever is larger.  The target is tol/2 of the
+        job's emitted power shared over the subscenes, so when every subscene
+        meets it the job's residual is below tol.  A subscene then does a fixed share
         of its own work per barrier however much light it was handed.
         """
         rays = 0
@@ -446,8 +449,8 @@ def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig
     subs = []
     for cell, (sub, _) in zip(part.cells, pieces):
         touching = [b for b in boundaries if cell.id in (b.side_a, b.side_b)]
-        subs.append(Subscene(cell.id, sub, touching, config, per_ray, divide.mode,
-                             local_target=0.5 * config.tol if divide.adaptive else 0.0))
+        target = 0.5 * config.tol * emitted / len(part.cells) if divide.adaptive else 0.0
+        subs.append(Subscene(cell.id, sub, touching, config, per_ray, divide.mode, local_target=target))
     return subs, boundaries, [par for _, par in pieces], part
 
 

@@ -152,11 +152,16 @@ def solve_to(
         run, subs, boundaries, part = solve_divided(patches, config, divide, planes=planes,
                                                    on_barrier=progress, should_stop=should_stop)
         solver.adopt_divided(run, sum(s.stats.trace_seconds for s in subs))
+        if divide.mode == "binned":
+            dense = sum(b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
+            solver.choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
+                                  f"against {dense} bytes for every portal cell and bin")
         divided = {"subscenes": len(subs), "boundaries": len(boundaries), "barriers": run.barriers,
                    "mode": divide.mode, "iterations": divide.iterations, "solid": divide.solid,
                    "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
                    "partition": part.as_dict()}
     else:
+        solver.choices.append("one subscene: no partition, no boundaries, no twin buffers")
         solver.run(on_progress=on_progress, should_stop=should_stop)
 
     t0 = time.perf_counter()

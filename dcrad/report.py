@@ -63,6 +63,7 @@ def run_report(scene, solver, settings: dict, timings: dict, warnings: list[str]
         "trace_share": stats["trace_seconds"] / wall,
         "timings": timings,
         "warnings": list(warnings),
+        "choices": list(getattr(solver, "choices", [])),
         "snapshots": snaps,
         "snapshot_note": (
             "rms_estimate: live estimate from the residual (B* unknown); "

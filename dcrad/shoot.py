@@ -109,8 +109,12 @@ def patch_rays(
     return RayBatch(origins=origins, dirs=dirs, power=per_ray, shooter=owner)
 
 
-def trace(tracer: Tracer, batch: RayBatch, patches: Patches) -> Tally:
-    """Trace a batch and tally where its power went (no state is changed)."""
+def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) -> Tally:
+    """Trace a batch and tally where its power went (no state is changed).
+
+    channels=1 (grey scenes: every rho, E and ray power has equal channels) tallies
+    the first channel and copies it: the result is the same, one bincount instead of three.
+    """
     n = len(patches)
     prim, t = tracer.intersect(batch.origins, batch.dirs)
     is_patch = (prim != MISS) & (prim < n)
@@ -126,8 +130,11 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches) -> Tally:
     # Scatter power onto patches, one bincount per channel
     received = np.empty((n, 3), np.float64)
     hit = prim[front]
-    for c in range(3):
+    for c in range(channels):
         received[:, c] = np.bincount(hit, weights=batch.power[front, c], minlength=n)
+    if channels == 1:
+        received[:, 1] = received[:, 0]
+        received[:, 2] = received[:, 0]
 
     n_obj = max(len(patches.names), int(patches.obj.max(initial=-1)) + 1, 1)
     back_by_obj = np.bincount(
