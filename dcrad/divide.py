@@ -114,7 +114,12 @@ class Subscene(Solver):
         amounts = self.shoot_amounts()
         _, _, _, _, t_power = self.pending.entries()
         power = np.concatenate([amounts * p.area[:, None], t_power.reshape(-1, 3)])
-        idx, counts = self.rank(power)
+        # A twin entry is already narrow in direction and position: rays in proportion to
+        # its power, at least one (the 32-ray floor is for a patch's whole hemisphere;
+        # on an open boundary with 1e5 small entries it multiplied the rays 32-fold)
+        floor = np.concatenate([np.full(len(p), self.config.min_rays), np.ones(len(t_power), np.int64)])
+        # twin entries are many and cheap: only the batch's ray budget limits them
+        idx, counts = self.rank(power, floor, self.config.max_shooters + len(t_power))
         patch = idx < len(p)
         return idx, counts, power[idx], amounts[idx[patch]]
 

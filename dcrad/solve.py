@@ -137,20 +137,26 @@ class Solver:
             return self.patches.unshot
         return self.patches.unshot + self.patches.rho * g
 
-    def rank(self, power: np.ndarray):
-        """Top-K shooters by |power| (m,3) W and their ray counts (fixed power per ray)."""
+    def rank(self, power: np.ndarray, min_rays=None, max_shooters=None):
+        """Top-K shooters by |power| (m,3) W and their ray counts (fixed power per ray).
+
+        min_rays: fewest rays per shooter, scalar or (m,) (default config.min_rays);
+        max_shooters: K (default config.max_shooters); the batch's ray budget caps it too.
+        """
         cfg = self.config
+        floor = cfg.min_rays if min_rays is None else min_rays
         scalar = np.abs(power).sum(axis=1)
         n = len(scalar)
         if n == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        k = min(cfg.max_shooters, n)
+        k = min(max_shooters or cfg.max_shooters, n)
         # Top-K by power, largest first
         idx = np.argpartition(-scalar, k - 1)[:k] if k < n else np.arange(n)
         idx = idx[np.argsort(-scalar[idx], kind="stable")]
         idx = idx[scalar[idx] > self._negligible]
         # Rays in proportion to power, clamped; fill the batch's ray budget
-        counts = np.clip(np.ceil(scalar[idx] / self.power_per_ray), cfg.min_rays, cfg.max_rays_per_shot)
+        floor = floor if np.isscalar(floor) else np.asarray(floor)[idx]
+        counts = np.clip(np.ceil(scalar[idx] / self.power_per_ray), floor, cfg.max_rays_per_shot)
         counts = counts.astype(np.int64)
         fits = np.cumsum(counts) <= cfg.batch_rays
         fits[:1] = True
