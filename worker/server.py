@@ -38,6 +38,18 @@ def status_of(key: pb.SubsceneKey, sub: Subscene, compute_s: float = 0.0) -> pb.
                              twin_entries=st.twin_entries, twin_bytes=st.twin_bytes, compute_s=compute_s)
 
 
+async def read_stream(request_iterator, head: str):
+    """A client stream of one ``head`` message then ArrayChunks: (head or None, arrays assembler)."""
+    first = None
+    asm = ArrayAssembler()
+    async for req in request_iterator:
+        if req.HasField(head):
+            first = getattr(req, head)
+        else:
+            asm.add(req.array)
+    return first, asm
+
+
 class WorkerServicer(pb_grpc.WorkerServicer):
     """Holds subscenes by (job id, cell); several jobs may share a worker."""
 
@@ -53,13 +65,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         return self.subscenes[k], k
 
     async def Load(self, request_iterator, context):
-        header = None
-        asm = ArrayAssembler()
-        async for req in request_iterator:
-            if req.HasField("header"):
-                header = req.header
-            else:
-                asm.add(req.array)
+        header, asm = await read_stream(request_iterator, "header")
         if header is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Load needs a header first")
         try:
@@ -91,13 +97,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             yield pb.IterateReply(status=status_of(request.key, sub, self.compute[k]))
 
     async def Deliver(self, request_iterator, context):
-        key = None
-        asm = ArrayAssembler()
-        async for req in request_iterator:
-            if req.HasField("key"):
-                key = req.key
-            else:
-                asm.add(req.array)
+        key, asm = await read_stream(request_iterator, "key")
         if key is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Deliver needs a key first")
         sub, k = self._get(key, context)
