@@ -55,7 +55,13 @@ class WorkerEntry:
         if self.channel is None:
             self.channel = grpc.insecure_channel(self.address, options=[
                 ("grpc.max_receive_message_length", MAX_MESSAGE),
-                ("grpc.max_send_message_length", MAX_MESSAGE)])
+                ("grpc.max_send_message_length", MAX_MESSAGE),
+                # a worker whose host vanishes (container stopped, cable cut) answers
+                # nothing, not even a reset: ping it, and fail the call within seconds
+                ("grpc.keepalive_time_ms", 2000),
+                ("grpc.keepalive_timeout_ms", 3000),
+                ("grpc.keepalive_permit_without_calls", 1),
+                ("grpc.http2.max_pings_without_data", 0)])
         return pb_grpc.WorkerStub(self.channel)
 
 

@@ -159,7 +159,12 @@ async def serve(port: int = 0, host: str = "127.0.0.1", coordinator: str | None 
                 ready=None) -> None:
     """Run a worker until SIGTERM/SIGINT; ``ready(port)`` is called once listening."""
     server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
-                                      ("grpc.max_send_message_length", MAX_MESSAGE)])
+                                      ("grpc.max_send_message_length", MAX_MESSAGE),
+                                      # accept the coordinator's keepalive pings (every 2 s)
+                                      ("grpc.http2.min_recv_ping_interval_without_data_ms", 1000),
+                                      ("grpc.http2.min_ping_interval_without_data_ms", 1000),
+                                      ("grpc.keepalive_permit_without_calls", 1),
+                                      ("grpc.http2.max_ping_strikes", 0)])
     pb_grpc.add_WorkerServicer_to_server(WorkerServicer(), server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
