@@ -31,7 +31,7 @@ from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, assemble, build_subscenes
 from dcrad.energy import rms_error
 from dcrad.errors import DcradError
-from dcrad.pipeline import _is_floor_plan, prepare, write_outputs
+from dcrad.pipeline import _is_floor_plan, adopt_divided, prepare, write_outputs
 from dcrad.report import residual_estimate, run_report, write_json
 from dcrad.solve import Solver
 from dcrad.v1 import dcrad_pb2 as pb
@@ -343,23 +343,20 @@ class JobManager:
                 self.count(previews=1)
             job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), run.barriers)
             solver = Solver(patches, config)
-            solver.adopt_divided(run)
+            divided = adopt_divided(solver, run, boundaries, part, divide, len(subs))
             out = job.root / "out"
             outputs = write_outputs(out, scene, patches, spec.preview_width or 640, spec.preview_height or 480)
             settings = config.as_dict() | {"patch_size_m": size, "scale": spec.solver.scale or 1.0}
             report = run_report(scene, solver, settings, {"solve_s": run.wall_seconds},
                                 list(scene.warnings), outputs)
-            report["divided"] = {"subscenes": len(subs), "boundaries": len(boundaries), "barriers": run.barriers,
-                                 "mode": divide.mode, "iterations": divide.iterations, "solid": divide.solid,
-                                 "max_twin_bytes": run.max_twin_bytes,
-                                 "max_barrier_closure": max(run.barrier_closures),
-                                 "reassigned": [h.reassigned for h in handles],
-                                 "bytes_relayed": sum(h.bytes_relayed for h in handles),
-                                 "checkpoint_bytes": sum(h.checkpoint_bytes for h in handles),
-                                 "compute_seconds": [h.compute_s for h in handles],
-                                 "rpc_seconds": [h.rpc_seconds for h in handles],
-                                 "preview_seconds": job.preview.seconds,
-                                 "partition": part.as_dict()}
+            report["divided"] = divided | {
+                "reassigned": [h.reassigned for h in handles],
+                "bytes_relayed": sum(h.bytes_relayed for h in handles),
+                "checkpoint_bytes": sum(h.checkpoint_bytes for h in handles),
+                "compute_seconds": [h.compute_s for h in handles],
+                "rpc_seconds": [h.rpc_seconds for h in handles],
+                "preview_seconds": job.preview.seconds,
+            }
             report["error_curve"] = self.curve_dict(job)
             write_json(out / "report.json", report)
             job.report = report

@@ -20,7 +20,6 @@ replace the local ones without touching the numerics.
 
 from __future__ import annotations
 
-import math
 import time
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
@@ -32,8 +31,7 @@ from .config import SolverConfig
 from .energy import ACCOUNTS, Ledger
 from .patches import Patches
 from .rays import Tracer
-from .sampling import lattice
-from .shoot import RayBatch, deposit, patch_rays, ray_offset, trace
+from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
 from .solve import Snapshot, Solver
 
 __all__ = [
@@ -109,10 +107,12 @@ class Subscene(Solver):
 
     # == sources: patches and outgoing twins, one ranking ========================
     def select_all(self):
-        """Patches and outgoing twins ranked together by power: (idx, counts, power (k,3) W, amounts)."""
+        """Patches and outgoing twins ranked together by power:
+        (idx, counts, power (k,3) W, amounts of the patch shooters, the pending entries)."""
         p = self.patches
         amounts = self.shoot_amounts()
-        _, _, _, _, t_power = self.pending.entries()
+        entries = self.pending.entries()
+        t_power = entries[4]
         power = np.concatenate([amounts * p.area[:, None], t_power.reshape(-1, 3)])
         # A twin entry is already narrow in direction and position: rays in proportion to
         # its power, at least one (the 32-ray floor is for a patch's whole hemisphere;
@@ -121,16 +121,16 @@ class Subscene(Solver):
         # twin entries are many and cheap: only the batch's ray budget limits them
         idx, counts = self.rank(power, floor, self.config.max_shooters + len(t_power))
         patch = idx < len(p)
-        return idx, counts, power[idx], amounts[idx[patch]]
+        return idx, counts, power[idx], amounts[idx[patch]], entries
 
-    def twin_rays(self, entries: np.ndarray, counts: np.ndarray, power: np.ndarray) -> RayBatch:
-        """Rays from outgoing twins: points in the portal cell, directions inside the bin."""
-        bid, crossing, cell, bins, _ = self.pending.entries()
+    def twin_rays(self, pending, entries: np.ndarray, counts: np.ndarray, power: np.ndarray) -> RayBatch:
+        """Rays from outgoing twins: points in the portal cell, directions inside the bin.
+
+        pending: ``self.pending.entries()``; entries (k,) the positions shot.
+        """
+        bid, crossing, cell, bins, _ = pending
         total = int(counts.sum())
-        owner = np.repeat(np.arange(len(entries)), counts)
-        start = np.cumsum(counts) - counts
-        index = np.arange(total) - np.repeat(start, counts)
-        u = lattice(index, np.repeat(self.rng.random((len(entries), 4)), counts, axis=0), 4)
+        owner, u = ray_lattice(counts, self.rng)
         e = entries[owner]
         origins = np.empty((total, 3))
         dirs = np.empty((total, 3))
@@ -142,8 +142,7 @@ class Subscene(Solver):
             side = np.where(crossing[e[sel]] == 0, 1.0, -1.0)
             origins[sel] = o + (self._offset * side)[:, None] * b.normal[None, :]
             dirs[sel] = d
-        per_ray = np.repeat(power / counts[:, None], counts, axis=0)
-        return RayBatch(origins=origins, dirs=dirs, power=per_ray, shooter=owner)
+        return RayBatch(origins=origins, dirs=dirs, power=per_ray_power(power, counts), shooter=owner)
 
     def _in_flight(self) -> np.ndarray:
         extra = self.forward.total() if self.mode == "exact" else 0.0
@@ -158,24 +157,21 @@ class Subscene(Solver):
             side[sel] = np.where(part.dirs[sel] @ b.normal > 0, 1.0, -1.0)
             part.origins[sel] += (self._offset * side[sel])[:, None] * b.normal[None, :]
         batch = RayBatch(part.origins, part.dirs, part.power, np.zeros(len(part), np.int64))
-        t0 = time.perf_counter()
-        tally = trace(self.tracer, batch, self.patches, self.channels)
-        self.stats.trace_seconds += time.perf_counter() - t0
-        self._commit(batch, tally)
-        self.stats.rays += len(batch)
-        self.stats.batches += 1
-        return len(batch)
+        tally = self.fire(batch, time.perf_counter())
+        self.commit(batch, tally)
+        return self.counted(0, len(batch))
 
-    def _commit(self, batch: RayBatch, tally) -> None:
-        absorbed = deposit(self.patches, tally.received)
-        misrouted = self.record_crossings(batch, tally)
-        self.account(batch.power, tally, absorbed, misrouted)
+    def crossings(self, batch: RayBatch, tally) -> np.ndarray:
+        return self.record_crossings(batch, tally)
+
+    def commit(self, batch: RayBatch, tally) -> None:
+        super().commit(batch, tally)
         self.ledger.in_flight = self._in_flight()
 
     def step(self) -> int:
         if self.mode == "exact" and len(self.forward):
             return self.step_forwarded()
-        idx, counts, power, amounts = self.select_all()
+        idx, counts, power, amounts, pending = self.select_all()
         if len(idx) == 0:
             return 0
         p = self.patches
@@ -187,21 +183,17 @@ class Subscene(Solver):
             batches.append(patch_rays(p, idx[is_patch], counts[is_patch], power[is_patch], self.rng))
         twin_idx = idx[~is_patch] - n
         if len(twin_idx):
-            batches.append(self.twin_rays(twin_idx, counts[~is_patch], power[~is_patch]))
+            batches.append(self.twin_rays(pending, twin_idx, counts[~is_patch], power[~is_patch]))
         batch = batches[0] if len(batches) == 1 else RayBatch(
             *(np.concatenate([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "power", "shooter")))
-        tally = trace(self.tracer, batch, p, self.channels)
-        self.stats.trace_seconds += time.perf_counter() - t0
+        tally = self.fire(batch, t0)
 
-        # Commit: shooters give up their power; receivers keep rho of what arrived
+        # Shooters give up their power (twins leave the pending buffer)
         p.unshot[idx[is_patch]] -= amounts
         if len(twin_idx):
             self.pending.take(twin_idx)
-        self._commit(batch, tally)
-        self.stats.shots += len(idx)
-        self.stats.rays += len(batch)
-        self.stats.batches += 1
-        return len(batch)
+        self.commit(batch, tally)
+        return self.counted(len(idx), len(batch))
 
     def record_crossings(self, batch: RayBatch, tally) -> np.ndarray:
         """Store rays that hit a boundary in ``sent``; return power of mis-sided hits (3,) W.
@@ -334,7 +326,6 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
     executor = executor or SequentialExecutor()
     run = DividedRun(ledger=Ledger())
     t0 = time.perf_counter()
-    emitted = None
 
     def barrier_snapshot(states):
         led = job_ledger(states)

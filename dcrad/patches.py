@@ -115,6 +115,11 @@ class Patches:
         return self.triangles.mean(axis=1)
 
     @cached_property
+    def n_objects(self) -> int:
+        """Number of object ids in use (at least 1): the length of per-object tallies."""
+        return max(len(self.names), int(self.obj.max(initial=-1)) + 1, 1)
+
+    @cached_property
     def bounds(self) -> np.ndarray:
         """(2, 3) float64 axis-aligned box of the vertices used."""
         used = self.vertices[np.unique(self.faces)] if len(self.faces) else np.zeros((1, 3))

@@ -19,7 +19,7 @@ from .patches import Patches
 from .report import run_report, write_json
 from .solve import Solver
 
-__all__ = ["default_patch_size", "prepare", "write_outputs", "solve_to", "resolve_scene"]
+__all__ = ["default_patch_size", "prepare", "write_outputs", "solve_to", "resolve_scene", "adopt_divided"]
 
 log = logging.getLogger("dcrad")
 
@@ -100,6 +100,23 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     return written
 
 
+def adopt_divided(solver, run, boundaries, part, divide, subscenes: int, trace_seconds: float = 0.0) -> dict:
+    """Give ``solver`` a divided run's books and choices; return the report's ``divided`` section.
+
+    Used by ``solve_to`` (in process) and by the coordinator (remote workers), which
+    adds its own service figures to the returned dict.
+    """
+    solver.adopt_divided(run, trace_seconds)
+    if divide.mode == "binned":
+        dense = sum(b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
+        solver.choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
+                              f"against {dense} bytes for every portal cell and bin")
+    return {"subscenes": subscenes, "boundaries": len(boundaries), "barriers": run.barriers,
+            "mode": divide.mode, "iterations": divide.iterations, "solid": divide.solid,
+            "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
+            "partition": part.as_dict()}
+
+
 class _DividedView:
     """What the progress bar reads, for a divided run."""
 
@@ -151,15 +168,8 @@ def solve_to(
         progress = (lambda run: on_progress(_DividedView(run, solver))) if on_progress else None
         run, subs, boundaries, part = solve_divided(patches, config, divide, planes=planes,
                                                    on_barrier=progress, should_stop=should_stop)
-        solver.adopt_divided(run, sum(s.stats.trace_seconds for s in subs))
-        if divide.mode == "binned":
-            dense = sum(b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
-            solver.choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
-                                  f"against {dense} bytes for every portal cell and bin")
-        divided = {"subscenes": len(subs), "boundaries": len(boundaries), "barriers": run.barriers,
-                   "mode": divide.mode, "iterations": divide.iterations, "solid": divide.solid,
-                   "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
-                   "partition": part.as_dict()}
+        divided = adopt_divided(solver, run, boundaries, part, divide, len(subs),
+                                sum(s.stats.trace_seconds for s in subs))
     else:
         solver.choices.append("one subscene: no partition, no boundaries, no twin buffers")
         solver.run(on_progress=on_progress, should_stop=should_stop)

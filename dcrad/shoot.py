@@ -21,7 +21,7 @@ from .patches import Patches
 from .rays import MISS, Tracer
 from .sampling import cosine_hemisphere, lattice, onb
 
-__all__ = ["RayBatch", "Tally", "patch_rays", "trace", "deposit"]
+__all__ = ["RayBatch", "Tally", "ray_lattice", "per_ray_power", "patch_rays", "trace", "deposit"]
 
 
 @dataclass
@@ -66,6 +66,24 @@ def ray_offset(patches: Patches) -> float:
     return TOL.ray_offset * patches.scale
 
 
+def ray_lattice(counts: np.ndarray, rng: np.random.Generator, dtype=np.float64):
+    """Stratified 4-D samples for shooters that get ``counts`` (k,) rays each.
+
+    Each shooter has its own randomly shifted R4 lattice.  Returns (owner (m,) i8,
+    the shooter of each ray; u (m,4) in [0,1) of ``dtype``).
+    """
+    k = len(counts)
+    owner = np.repeat(np.arange(k), counts)
+    start = np.cumsum(counts) - counts
+    index = np.arange(int(counts.sum())) - np.repeat(start, counts)
+    return owner, lattice(index, np.repeat(rng.random((k, 4)), counts, axis=0), 4, dtype=dtype)
+
+
+def per_ray_power(power: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(m,3) W each ray carries: its shooter's power (k,3) split evenly over its rays."""
+    return np.repeat(power / counts[:, None], counts, axis=0)
+
+
 def patch_rays(
     patches: Patches,
     shooters: np.ndarray,
@@ -79,12 +97,7 @@ def patch_rays(
     Each shooter gets its own randomly shifted 4-D lattice (2 dims position, 2 dims
     direction), so its rays are stratified over the triangle and the hemisphere.
     """
-    k = len(shooters)
-    total = int(counts.sum())
-    owner = np.repeat(np.arange(k), counts)
-    start = np.cumsum(counts) - counts
-    index = np.arange(total) - np.repeat(start, counts)
-    u = lattice(index, np.repeat(rng.random((k, 4)), counts, axis=0), 4, dtype=np.float32)
+    owner, u = ray_lattice(counts, rng, dtype=np.float32)
 
     # Per-shooter geometry, repeated per ray (np.repeat is ~8x faster than a gather)
     faces = patches.faces[shooters]
@@ -105,8 +118,7 @@ def patch_rays(
     # Cosine directions in each shooter's frame (float32: Embree's precision)
     local = cosine_hemisphere(u[:, 2:])
     dirs = np.einsum("mi,mij->mj", local, frames)
-    per_ray = np.repeat(power / counts[:, None], counts, axis=0)
-    return RayBatch(origins=origins, dirs=dirs, power=per_ray, shooter=owner)
+    return RayBatch(origins=origins, dirs=dirs, power=per_ray_power(power, counts), shooter=owner)
 
 
 def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) -> Tally:
@@ -136,9 +148,8 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
         received[:, 1] = received[:, 0]
         received[:, 2] = received[:, 0]
 
-    n_obj = max(len(patches.names), int(patches.obj.max(initial=-1)) + 1, 1)
     back_by_obj = np.bincount(
-        patches.obj[prim[back]], weights=batch.power[back].sum(axis=1), minlength=n_obj
+        patches.obj[prim[back]], weights=batch.power[back].sum(axis=1), minlength=patches.n_objects
     )
     return Tally(
         received=received,

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -177,35 +177,49 @@ class Solver:
         led.absorbed = led.absorbed + absorbed
         led.escaped = led.escaped + tally.escaped
         led.back_faces = led.back_faces + tally.back_faces + extra_lost
-        led.unshot = p.unshot_power
-        led.unshot_abs = (np.abs(p.unshot) * p.area[:, None]).sum(axis=0)
+        unshot = p.unshot * p.area[:, None]  # W per patch, signed
+        led.unshot = unshot.sum(axis=0)
+        led.unshot_abs = np.abs(unshot).sum(axis=0)
         received = np.abs(tally.received).sum(axis=0)
         self._shot_abs += np.abs(shot).sum(axis=0)
         self._received_abs += received
         self._reflected_abs += received - np.abs(absorbed)
         self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
 
+    # -- the three phases every kind of step shares -----------------------------------
+    def fire(self, batch, t0: float):
+        """Trace a batch whose sampling began at ``t0``; the time counts as trace time."""
+        tally = trace(self.tracer, batch, self.patches, self.channels)
+        self.stats.trace_seconds += time.perf_counter() - t0
+        return tally
+
+    def crossings(self, batch, tally) -> np.ndarray:
+        """Power (3,) W of hits that leave the books another way (subscenes: boundaries)."""
+        return np.zeros(3)
+
+    def commit(self, batch, tally) -> None:
+        """Receivers keep rho of what arrived; book the batch."""
+        absorbed = deposit(self.patches, tally.received)
+        self.account(batch.power, tally, absorbed, self.crossings(batch, tally))
+
+    def counted(self, shots: int, rays: int) -> int:
+        self.stats.shots += shots
+        self.stats.rays += rays
+        self.stats.batches += 1
+        return rays
+
     def step(self) -> int:
         """Shoot one batch; return the number of rays traced (0 when nothing is unshot)."""
         idx, counts, power, amounts = self.select()
         if len(idx) == 0:
             return 0
-        p = self.patches
         t0 = time.perf_counter()
-        batch = patch_rays(p, idx, counts, power, self.rng)
-        tally = trace(self.tracer, batch, p, self.channels)
-        self.stats.trace_seconds += time.perf_counter() - t0
-
-        # Commit: shooters give up what they shot (dB - amount: 0, or -rho*g when
-        # overshooting), receivers keep rho of what arrived
-        p.unshot[idx] -= amounts
-        absorbed = deposit(p, tally.received)
-        self.account(power, tally, absorbed)
-
-        self.stats.shots += len(idx)
-        self.stats.rays += len(batch)
-        self.stats.batches += 1
-        return len(batch)
+        batch = patch_rays(self.patches, idx, counts, power, self.rng)
+        tally = self.fire(batch, t0)
+        # Shooters give up what they shot (dB - amount: 0, or -rho*g when overshooting)
+        self.patches.unshot[idx] -= amounts
+        self.commit(batch, tally)
+        return self.counted(len(idx), len(batch))
 
     # == the loop ==================================================================
     def elapsed(self) -> float:

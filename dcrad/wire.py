@@ -34,6 +34,17 @@ def _le(arr: np.ndarray) -> np.ndarray:
     return arr
 
 
+def _pieces(raw: bytes, chunk: int):
+    """(offset, bytes) pieces of ``raw`` of at most ``chunk`` bytes; one empty piece for b""."""
+    offset = 0
+    while True:
+        piece = raw[offset : offset + chunk]
+        yield offset, piece
+        offset += len(piece)
+        if offset >= len(raw):
+            return
+
+
 def array_chunks(name: str, arr: np.ndarray, chunk: int = CHUNK_BYTES) -> Iterator[pb.ArrayChunk]:
     """Split one array into ArrayChunk messages (at least one, even when empty)."""
     arr = _le(np.asarray(arr))
@@ -41,15 +52,9 @@ def array_chunks(name: str, arr: np.ndarray, chunk: int = CHUNK_BYTES) -> Iterat
     if dtype not in ALLOWED_DTYPES:
         raise ExchangeError(f"array '{name}': dtype {dtype} cannot go on the wire")
     raw = arr.tobytes()
-    total = len(raw)
-    offset = 0
-    while True:
-        piece = raw[offset : offset + chunk]
+    for offset, piece in _pieces(raw, chunk):
         yield pb.ArrayChunk(name=name, dtype=dtype, shape=list(arr.shape), offset=offset,
-                            total_bytes=total, data=piece)
-        offset += len(piece)
-        if offset >= total:
-            return
+                            total_bytes=len(raw), data=piece)
 
 
 def arrays_to_chunks(arrays: dict, chunk: int = CHUNK_BYTES) -> Iterator[pb.ArrayChunk]:
@@ -125,14 +130,8 @@ def safe_relpath(path: str) -> str:
 
 
 def file_chunks(data: bytes, relpath: str, chunk: int = CHUNK_BYTES) -> Iterator[pb.FileChunk]:
-    total = len(data)
-    offset = 0
-    while True:
-        piece = data[offset : offset + chunk]
-        yield pb.FileChunk(path=relpath, offset=offset, total_bytes=total, data=piece)
-        offset += len(piece)
-        if offset >= total:
-            return
+    for offset, piece in _pieces(data, chunk):
+        yield pb.FileChunk(path=relpath, offset=offset, total_bytes=len(data), data=piece)
 
 
 class FileAssembler:
