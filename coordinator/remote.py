@@ -28,7 +28,7 @@ from dcrad.divide import SubsceneState, checkpoint_arrays, subscene_arrays
 from dcrad.errors import DcradError
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
-from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_from_pb
+from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_from_pb, plan_fields
 
 log = logging.getLogger("dcrad.coordinator")
 
@@ -151,6 +151,7 @@ class RemoteSubscene:
         self._status: pb.SubsceneStatus | None = None
         self._collected = None
         self._last_batches = 0
+        self._last_plan = None
         self._state0 = sub.state()
         #: s of wall time in each kind of rpc (includes the worker's compute for iterate)
         self.rpc_seconds = {"load": 0.0, "iterate": 0.0, "deliver": 0.0, "checkpoint": 0.0}
@@ -201,19 +202,20 @@ class RemoteSubscene:
         self.place()
 
     # -- the handle interface ------------------------------------------------------
-    def _iterate_once(self, n: int):
+    def _iterate_once(self, n: int, plan=None):
         t0 = time.perf_counter()
-        replies = self.worker.stub().Iterate(pb.IterateRequest(key=self.key, batches=n), timeout=self.timeout)
+        request = pb.IterateRequest(key=self.key, batches=n, **plan_fields(plan))
+        replies = self.worker.stub().Iterate(request, timeout=self.timeout)
         arrays, status = _gather(replies)
         self.rpc_seconds["iterate"] += time.perf_counter() - t0
         kind = RayParcel if self.mode == "exact" else TwinBuffer
         return kind.from_arrays(arrays), status
 
-    def iterate(self, n: int) -> int:
-        self._last_batches = n
+    def iterate(self, n: int, plan=None) -> int:
+        self._last_batches, self._last_plan = n, plan
         while True:
             try:
-                buf, status = self._iterate_once(n)
+                buf, status = self._iterate_once(n, plan)
                 break
             except grpc.RpcError as exc:
                 self._failover(exc)
@@ -250,7 +252,7 @@ class RemoteSubscene:
                 # iterate (deterministic: same buffer, same state), then deliver again
                 self._failover(exc)
                 try:
-                    self._iterate_once(self._last_batches)
+                    self._iterate_once(self._last_batches, self._last_plan)
                 except grpc.RpcError as again:
                     self._failover(again)
 
@@ -264,7 +266,9 @@ class RemoteSubscene:
         s = self._status
         if s is None:
             return self._state0
-        return SubsceneState(self.cell, ledger_from_pb(s.ledger), s.shots, s.rays, s.twin_entries, s.twin_bytes)
+        tallies = np.array(list(s.return_tallies) or [0.0] * 12, np.float64).reshape(4, 3)
+        return SubsceneState(self.cell, ledger_from_pb(s.ledger), s.shots, s.rays, s.twin_entries, s.twin_bytes,
+                             s.area, tallies)
 
     def radiosity(self) -> np.ndarray:
         """(n,3) radiosity of the subscene's patches at the last barrier."""

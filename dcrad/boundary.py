@@ -295,8 +295,12 @@ class TwinBuffer:
         return len(self.keys)
 
     def total(self) -> np.ndarray:
-        """(channels,) f8 W held by the buffer."""
+        """(channels,) f8 W held by the buffer (signed: overshooting sends negative power too)."""
         return self.power.sum(axis=0)
+
+    def total_abs(self) -> np.ndarray:
+        """(channels,) f8 W: sum of magnitudes over entries."""
+        return np.abs(self.power).sum(axis=0)
 
     def nbytes(self) -> int:
         """Bytes held by keys and power (grows with entries, not with the grid)."""
@@ -431,6 +435,9 @@ class RayParcel:
 
     def total(self) -> np.ndarray:
         return self.power.sum(axis=0) if len(self) else np.zeros(3)
+
+    def total_abs(self) -> np.ndarray:
+        return np.abs(self.power).sum(axis=0) if len(self) else np.zeros(3)
 
     def nbytes(self) -> int:
         return int(self.boundary.nbytes + self.origins.nbytes + self.dirs.nbytes + self.power.nbytes)

@@ -50,10 +50,17 @@ class SolverConfig:
                                 progressive refinement; see solve.py)
     overshoot_min_return float  overshoot only when the measured return ratio   0.85
                                 (reflected / shot) is at least this (stiff)
+    stiff_rays           bool   in stiff scenes budget rays against the whole   True
+                                solution E/(1-lambda), not the emitted power
     ===================  =====  ==============================================  ========
 
     Rays per shot are proportional to the power shot (a fixed power per ray,
     ``emitted / rays_per_power``), clamped to [min_rays, max_rays_per_shot].
+    A stiff scene (return ratio lambda >= overshoot_min_return) shoots
+    E/(1-lambda) in all, up to 1000 times its emission at rho 0.999; with
+    ``stiff_rays`` the power per ray grows by sqrt((1-overshoot_min_return)/(1-lambda))
+    (and the min_rays floor shrinks by it), which keeps the noise relative to B
+    about that of an ordinary scene (see solve.py).
     """
 
     seed: int = 0
@@ -68,6 +75,7 @@ class SolverConfig:
     snapshot_factor: float = 1.25
     overshoot: float = 1.0
     overshoot_min_return: float = 0.85
+    stiff_rays: bool = True
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str) -> None:
@@ -85,6 +93,8 @@ class SolverConfig:
         need(self.max_shooters >= 1, f"max_shooters={self.max_shooters} must be >= 1")
         need(self.snapshot_factor > 1.0, f"snapshot_factor={self.snapshot_factor} must be > 1")
         need(0.0 <= self.overshoot <= 1.0, f"overshoot={self.overshoot} must be in [0, 1]")
+        need(0.0 < self.overshoot_min_return < 1.0,
+             f"overshoot_min_return={self.overshoot_min_return} must be in (0, 1)")
 
     def replace(self, **changes) -> "SolverConfig":
         return dataclasses.replace(self, **changes)

@@ -28,11 +28,11 @@ import numpy as np
 
 from .boundary import Boundary, RayParcel, TwinBuffer, transfer, transfer_rays
 from .config import SolverConfig
-from .energy import ACCOUNTS, Ledger
+from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .patches import Patches
 from .rays import Tracer
 from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
-from .solve import Snapshot, Solver
+from .solve import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
     "Subscene", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor", "DivideConfig",
@@ -65,6 +65,9 @@ class SubsceneState:
     rays: int
     twin_entries: int  #: non-empty (boundary, crossing, cell, bin) entries held
     twin_bytes: int  #: bytes held by twin buffers
+    area: float = 0.0  #: m^2 of the subscene's patches
+    #: (4,3) W shot by patches, lost, landed, kept (``Solver.tallies``), for the job's stiffness
+    tallies: np.ndarray = field(default_factory=lambda: np.zeros((4, 3)))
 
 
 class Subscene(Solver):
@@ -99,27 +102,41 @@ class Subscene(Solver):
 
             raise ConfigError(f"boundary mode must be 'binned' or 'exact', not {mode!r}")
         self._offset = ray_offset(patches) if len(patches) else 1e-6
+        #: this barrier's plan from ``run_divided``: the job's Stiffness and U_rest (see ``ambient``)
+        self.plan: BarrierPlan | None = None
         self._by_id = {b.id: i for i, b in enumerate(self.boundaries)}
 
-    def ambient(self) -> np.ndarray:
-        """Subscenes never overshoot (see solve.py): signed twin power does not settle."""
-        return np.zeros(3)
+    def stiffness(self) -> Stiffness:
+        """The job's stiffness, estimated by ``run_divided`` at the barrier (none before)."""
+        return self.plan.stiffness if self.plan is not None else Stiffness.none()
+
+    def ambient(self, st: Stiffness) -> np.ndarray:
+        """(3,) W/m^2: the job's ambient irradiance g = F * U (solve.py module doc).
+
+        The estimate needs the whole job: F comes from the summed return tallies,
+        and U = U_rest (the signed unshot and twin power the other subscenes held
+        at the barrier) + this subscene's own, as it is now.
+        """
+        if not st.scale.any():
+            return st.scale
+        return st.scale * (self.plan.rest + self.ledger.unshot + self.ledger.in_flight)
 
     # == sources: patches and outgoing twins, one ranking ========================
     def select_all(self):
         """Patches and outgoing twins ranked together by power:
         (idx, counts, power (k,3) W, amounts of the patch shooters, the pending entries)."""
         p = self.patches
-        amounts = self.shoot_amounts()
+        st = self.stiffness()
+        amounts = self.shoot_amounts(st)
         entries = self.pending.entries()
         t_power = entries[4]
         power = np.concatenate([amounts * p.area[:, None], t_power.reshape(-1, 3)])
         # A twin entry is already narrow in direction and position: rays in proportion to
         # its power, at least one (the 32-ray floor is for a patch's whole hemisphere;
         # on an open boundary with 1e5 small entries it multiplied the rays 32-fold)
-        floor = np.concatenate([np.full(len(p), self.config.min_rays), np.ones(len(t_power), np.int64)])
+        floor = np.concatenate([np.full(len(p), st.min_rays(self.config)), np.ones(len(t_power), np.int64)])
         # twin entries are many and cheap: only the batch's ray budget limits them
-        idx, counts = self.rank(power, floor, self.config.max_shooters + len(t_power))
+        idx, counts = self.rank(power, floor, self.config.max_shooters + len(t_power), st.ray_factor)
         patch = idx < len(p)
         return idx, counts, power[idx], amounts[idx[patch]], entries
 
@@ -144,9 +161,13 @@ class Subscene(Solver):
             dirs[sel] = d
         return RayBatch(origins=origins, dirs=dirs, power=per_ray_power(power, counts), shooter=owner)
 
-    def _in_flight(self) -> np.ndarray:
-        extra = self.forward.total() if self.mode == "exact" else 0.0
-        return self.sent.total() + self.pending.total() + extra
+    def _held(self) -> list:
+        return [self.sent, self.pending] + ([self.forward] if self.mode == "exact" else [])
+
+    def _book_in_flight(self) -> None:
+        held = self._held()
+        self.ledger.in_flight = sum(h.total() for h in held)
+        self.ledger.in_flight_abs = sum(h.total_abs() for h in held)
 
     def step_forwarded(self) -> int:
         """Exact mode: continue up to batch_rays rays handed over by neighbours."""
@@ -158,15 +179,15 @@ class Subscene(Solver):
             part.origins[sel] += (self._offset * side[sel])[:, None] * b.normal[None, :]
         batch = RayBatch(part.origins, part.dirs, part.power, np.zeros(len(part), np.int64))
         tally = self.fire(batch, time.perf_counter())
-        self.commit(batch, tally)
+        self.commit(batch, tally, shot=np.zeros((0, 3)))  # continued light, shot elsewhere
         return self.counted(0, len(batch))
 
     def crossings(self, batch: RayBatch, tally) -> np.ndarray:
         return self.record_crossings(batch, tally)
 
-    def commit(self, batch: RayBatch, tally) -> None:
-        super().commit(batch, tally)
-        self.ledger.in_flight = self._in_flight()
+    def commit(self, batch: RayBatch, tally, shot=None) -> None:
+        super().commit(batch, tally, shot)
+        self._book_in_flight()
 
     def step(self) -> int:
         if self.mode == "exact" and len(self.forward):
@@ -192,7 +213,8 @@ class Subscene(Solver):
         p.unshot[idx[is_patch]] -= amounts
         if len(twin_idx):
             self.pending.take(twin_idx)
-        self.commit(batch, tally)
+        n_patch = len(batches[0]) if is_patch.any() else 0
+        self.commit(batch, tally, shot=batch.power[:n_patch])
         return self.counted(len(idx), len(batch))
 
     def record_crossings(self, batch: RayBatch, tally) -> np.ndarray:
@@ -226,14 +248,23 @@ class Subscene(Solver):
 
     # == the handle interface used by run_divided ================================
     def local_residual(self) -> float:
-        """W left to move here: |unshot| + |pending twins| (absolute, comparable across subscenes)."""
-        led = self.ledger
-        extra = self.forward.total() if self.mode == "exact" else 0.0
-        pending = np.abs(self.pending.total() + extra).sum()
-        return float(np.maximum(led.unshot_abs, np.abs(led.unshot)).sum() + pending)
+        """W this subscene would still shoot now: |shoot amounts| + |pending twins| (absolute).
 
-    def iterate(self, n: int) -> int:
+        Without overshooting the amounts are the unshot power.  With it, a patch
+        that has shot keeps -rho*g parked until the light it anticipated arrives,
+        much of it from the other subscenes at later barriers: that is not work
+        this subscene can do now, so it does not count here.
+        """
+        p = self.patches
+        held = [self.pending] + ([self.forward] if self.mode == "exact" else [])
+        pending = sum(h.total_abs() for h in held).sum()
+        amounts = self.shoot_amounts(self.stiffness())
+        return float((np.abs(amounts) * p.area[:, None]).sum() + pending)
+
+    def iterate(self, n: int, plan: "BarrierPlan | None" = None) -> int:
         """doIterations: up to n batches; returns rays traced.
+
+        plan: how to shoot until the next barrier (``barrier_plan``); None: plainly.
 
         Adaptive (``local_target`` > 0, in W): stop once the local residual has
         fallen to a quarter of what it was when this barrier's iterations began,
@@ -242,6 +273,7 @@ class Subscene(Solver):
         meets it the job's residual is below tol.  A subscene then does a fixed share
         of its own work per barrier however much light it was handed.
         """
+        self.plan = plan
         rays = 0
         goal = max(self.local_target, 0.25 * self.local_residual()) if self.local_target > 0 else 0.0
         for _ in range(n):
@@ -257,19 +289,20 @@ class Subscene(Solver):
         """Hand over what crossed the boundaries since the last barrier."""
         out = self.sent.drain()
         self.ledger.exported = self.ledger.exported + out.total()
-        self.ledger.in_flight = self._in_flight()
+        self._book_in_flight()
         return out
 
     def deliver(self, buffer) -> None:
         """Accept outgoing power (TwinBuffer) or rays (RayParcel) from neighbours."""
         self.ledger.imported = self.ledger.imported + buffer.total()
         (self.forward if isinstance(buffer, RayParcel) else self.pending).merge(buffer)
-        self.ledger.in_flight = self._in_flight()
+        self._book_in_flight()
 
     def state(self) -> SubsceneState:
-        held = [self.sent, self.pending] + ([self.forward] if self.mode == "exact" else [])
+        held = self._held()
         return SubsceneState(self.cell, self.ledger.copy(), self.stats.shots, self.stats.rays,
-                             sum(len(h) for h in held), sum(h.nbytes() for h in held))
+                             sum(len(h) for h in held), sum(h.nbytes() for h in held),
+                             float(self.patches.area.sum()), self.tallies.copy())
 
     def radiosity(self) -> np.ndarray:
         return self.patches.radiosity
@@ -313,12 +346,41 @@ def job_ledger(states: list[SubsceneState]) -> Ledger:
     return total
 
 
+@dataclass(frozen=True)
+class BarrierPlan:
+    """How one subscene shoots until the next barrier (set by ``run_divided``).
+
+    stiffness : the job's Stiffness (ambient scale and ray factor)
+    rest      : (3,) W, signed unshot + twin power held by the *other* subscenes
+    """
+
+    stiffness: Stiffness
+    rest: np.ndarray
+
+
+def barrier_plan(states: list[SubsceneState], config: SolverConfig) -> dict:
+    """{cell: BarrierPlan} for the next doIterations (empty: plain shooting everywhere).
+
+    Stiffness is a property of the whole job (light crosses the boundaries), so
+    it is estimated from every subscene's return tallies and area at the
+    barrier, exactly as a single solver estimates its own.
+    """
+    area = sum(s.area for s in states)
+    tallies = sum((s.tallies for s in states), np.zeros((4, 3)))
+    st = stiffness(tallies, area, config)
+    if not st.scale.any() and st.ray_factor == 1.0:
+        return {}
+    held = {s.cell: s.ledger.unshot + s.ledger.in_flight for s in states}
+    total = sum(held.values(), np.zeros(3))
+    return {cell: BarrierPlan(st, total - u) for cell, u in held.items()}
+
+
 def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, iterations: int = 4,
                 executor: Executor | None = None, assemble_B=None, on_barrier=None,
                 should_stop=None) -> DividedRun:
     """The paper's main loop over subscene handles.
 
-    handles    : objects with iterate(n), collect(), deliver(buffer), state() (Subscene, or remote)
+    handles    : objects with iterate(n, plan), collect(), deliver(buffer), state() (Subscene, or remote)
     iterations : batches per subscene between two barriers (doIterations' n)
     assemble_B : optional callable () -> (n,3) radiosity of the whole scene, for snapshots
     on_barrier : optional callable (DividedRun) after every barrier
@@ -356,7 +418,8 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
         if reason:
             break
         # doIterations in every subscene (in parallel when the executor allows)
-        list(executor.map(lambda h: h.iterate(iterations), handles))
+        plan = barrier_plan(run.states, config)
+        list(executor.map(lambda h: h.iterate(iterations, plan.get(h.cell)), handles))
         # transferEnergy at the barrier
         incoming = {h.cell: h.collect() for h in handles}
         exact = any(isinstance(v, RayParcel) for v in incoming.values())
@@ -517,8 +580,8 @@ def checkpoint_arrays(sub: Subscene) -> dict:
     rng = json.dumps(sub.rng.bit_generator.state).encode()
     return {
         "radiosity": sub.patches.radiosity, "unshot": sub.patches.unshot,
-        "ledger": np.stack([getattr(led, a) for a in ACCOUNTS + ("unshot_abs",)]),
-        "ambient_tallies": np.stack([sub._shot_abs, sub._received_abs, sub._reflected_abs]),
+        "ledger": np.stack([getattr(led, a) for a in ACCOUNTS + MAGNITUDES]),
+        "return_tallies": sub.tallies,
         "stats": np.array([sub.stats.shots, sub.stats.rays, sub.stats.batches], np.int64),
         "trace_seconds": np.array([sub.stats.trace_seconds]),
         "back_by_obj": sub.back_by_obj,
@@ -536,11 +599,10 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
                 arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy())
     sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode, local_target)
     if "ledger" in arrays:  # resume from a checkpoint
-        for a, row in zip(ACCOUNTS + ("unshot_abs",), arrays["ledger"]):
+        for a, row in zip(ACCOUNTS + MAGNITUDES, arrays["ledger"]):
             setattr(sub.ledger, a, np.array(row, np.float64))
-        if "ambient_tallies" in arrays:
-            sub._shot_abs, sub._received_abs, sub._reflected_abs = (np.array(r, np.float64)
-                                                                     for r in arrays["ambient_tallies"])
+        if "return_tallies" in arrays:
+            sub.tallies = np.array(arrays["return_tallies"], np.float64).reshape(4, 3)
         sub.stats.shots, sub.stats.rays, sub.stats.batches = (int(x) for x in arrays["stats"])
         sub.stats.trace_seconds = float(arrays["trace_seconds"][0])
         sub.back_by_obj = np.array(arrays["back_by_obj"], np.float64)

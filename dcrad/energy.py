@@ -19,10 +19,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Ledger", "rms_error"]
+__all__ = ["ACCOUNTS", "MAGNITUDES", "Ledger", "rms_error"]
 
 
 ACCOUNTS = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported")
+#: magnitudes kept beside the signed accounts (overshooting makes unshot and twin power signed)
+MAGNITUDES = ("unshot_abs", "in_flight_abs")
 
 
 def _zeros() -> np.ndarray:
@@ -40,6 +42,7 @@ class Ledger:
     unshot: np.ndarray = field(default_factory=_zeros)  #: W, sum of dB * A over patches
     in_flight: np.ndarray = field(default_factory=_zeros)  #: W, power held in twin buffers
     unshot_abs: np.ndarray = field(default_factory=_zeros)  #: W, sum of |dB| * A (dB < 0 after overshooting)
+    in_flight_abs: np.ndarray = field(default_factory=_zeros)  #: W, sum of |power| over twin entries
     imported: np.ndarray = field(default_factory=_zeros)  #: W, received from neighbours (subscenes)
     exported: np.ndarray = field(default_factory=_zeros)  #: W, handed to neighbours (subscenes)
 
@@ -64,10 +67,11 @@ class Ledger:
         if total <= 0.0:
             return 0.0
         unshot = np.maximum(self.unshot_abs, np.abs(self.unshot))
-        return float((unshot.sum() + np.abs(self.in_flight).sum()) / total)
+        flight = np.maximum(self.in_flight_abs, np.abs(self.in_flight))
+        return float((unshot.sum() + flight.sum()) / total)
 
     def __iadd__(self, other: "Ledger") -> "Ledger":
-        for name in ACCOUNTS + ("unshot_abs",):
+        for name in ACCOUNTS + MAGNITUDES:
             setattr(self, name, getattr(self, name) + getattr(other, name))
         return self
 
@@ -75,7 +79,7 @@ class Ledger:
         return Ledger(**{k: np.array(v, np.float64) for k, v in self.as_arrays().items()})
 
     def as_arrays(self) -> dict:
-        return {name: getattr(self, name) for name in ACCOUNTS + ("unshot_abs",)}
+        return {name: getattr(self, name) for name in ACCOUNTS + MAGNITUDES}
 
     def as_dict(self) -> dict:
         """JSON-ready: every account as [r, g, b] W, plus closure and residual."""

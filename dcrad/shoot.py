@@ -50,6 +50,10 @@ class Tally:
     back_by_obj (n_obj,) W  back-face power by object, for the flipped-normal warning
     portal (k,) i8  indices of rays that hit a primitive >= n (a boundary), with
     portal_prim (k,) i8 and portal_t (k,) f8; empty when the scene has no boundary
+    landed, kept, lost (3,) W  sums of |ray power| over rays that landed (times the
+    receiver's rho, for kept) or escaped or hit a back face (lost): unlike the signed
+    sums they do not cancel when rays of both signs (overshooting) meet; they feed
+    the return-ratio estimate (solve.stiffness)
     """
 
     received: np.ndarray
@@ -59,6 +63,9 @@ class Tally:
     portal: np.ndarray
     portal_prim: np.ndarray
     portal_t: np.ndarray
+    landed: np.ndarray
+    kept: np.ndarray
+    lost: np.ndarray
 
 
 def ray_offset(patches: Patches) -> float:
@@ -148,6 +155,9 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
         received[:, 1] = received[:, 0]
         received[:, 2] = received[:, 0]
 
+    weight = np.abs(batch.power[front])
+    landed = weight.sum(axis=0)
+    kept = (weight * patches.rho[hit]).sum(axis=0)
     back_by_obj = np.bincount(
         patches.obj[prim[back]], weights=batch.power[back].sum(axis=1), minlength=patches.n_objects
     )
@@ -159,6 +169,9 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
         portal=portal,
         portal_prim=prim[portal] - n,
         portal_t=t[portal],
+        landed=landed,
+        kept=kept,
+        lost=np.abs(batch.power[missed | back]).sum(axis=0),
     )
 
 

@@ -14,7 +14,8 @@ irradiance still to come is close to uniform.  We estimate it,
     g = q * U / ((1 - lambda) * A_total)      (W/m^2, per channel)
 
 from the signed unshot power U, the share q of shot power that lands on a
-surface, and the return ratio lambda = reflected / shot measured so far.  A
+surface, and the return ratio lambda = q * (mean rho where light lands),
+measured so far.  A
 shooter i then shoots dB_i + rho_i * g, the light it will reflect once that
 irradiance arrives, and keeps dB_i = -rho_i * g (negative).  When the light
 does arrive it cancels the negative unshot; what the estimate got wrong is
@@ -24,9 +25,22 @@ only the number of bounces drops.  ``overshoot`` scales g (0: plain).  It
 acts only in stiff scenes (return ratio >= ``overshoot_min_return``): in
 ordinary ones the tail is short, and negative shots would only add noise
 (dim patches could dip below zero before the light they wait for arrives).
-Subscenes of a divided run do not overshoot: signed power in twin buffers
-crossing open space does not settle (measured: a furnace cut in two at
-rho 0.99 ran past 600 s); there the barrier iterations adapt instead.
+
+The return ratio is measured with magnitudes (``Tally.landed/kept/lost``):
+once rays of both signs fly, signed sums cancel and would make a stiff scene
+look tame.  Stiff scenes also shoot far more power than they emit, E/(1-lambda)
+in all (1000x at rho 0.999), so at a fixed power per ray they spend 1/(1-lambda)
+times the rays of a scene with no reflection, and their noise relative to B
+is far below an ordinary scene's.  With ``stiff_rays`` the power per ray grows
+by sqrt((1-min_return)/(1-lambda)) and the 32-ray floor per shot shrinks by
+the same factor.  The square root is measured, not derived: on the furnace it
+brings the noise relative to B back to that of rho 0.5-0.8 rooms of the same
+mesh (linear scaling left it 1.5-1.8x higher; bench/RESULTS.md).
+
+A divided job overshoots as one scene: light crosses the boundaries, so
+``divide.run_divided`` sums every subscene's tallies at each barrier and
+hands each subscene the job's scale F and the unshot power the others hold
+(``divide.BarrierPlan``).  Twin buffers then carry signed power.
 """
 
 from __future__ import annotations
@@ -43,7 +57,7 @@ from .patches import Patches
 from .rays import Tracer
 from .shoot import deposit, patch_rays, trace
 
-__all__ = ["Solver", "Snapshot", "solve"]
+__all__ = ["Solver", "Snapshot", "Stiffness", "stiffness", "solve"]
 
 
 @dataclass
@@ -90,9 +104,9 @@ class Solver:
         self.ledger = Ledger(emitted=patches.emitted_power.copy())
         self.ledger.unshot = patches.unshot_power.copy()
         self.ledger.unshot_abs = (np.abs(patches.unshot) * patches.area[:, None]).sum(axis=0)
-        self._shot_abs = np.zeros(3)  #: W shot so far (magnitudes), for the return ratio
-        self._received_abs = np.zeros(3)  #: W that landed on patches
-        self._reflected_abs = np.zeros(3)  #: W kept as unshot radiosity
+        #: W (magnitudes) shot by patches, lost (escaped, back faces), landed, kept as unshot:
+        #: the return-ratio tallies (rows; see ``stiffness``)
+        self.tallies = np.zeros((4, 3))
         self.stats = Stats()
         self.back_by_obj = np.zeros(max(len(patches.names), 1))
         emitted = float(self.ledger.emitted.sum())
@@ -112,36 +126,34 @@ class Solver:
         self._t0 = time.perf_counter()
 
     # == one Embree call ===========================================================
-    def ambient(self) -> np.ndarray:
-        """(3,) W/m^2: the irradiance still to arrive, as if spread uniformly (see module doc)."""
+    def stiffness(self) -> "Stiffness":
+        """This scene's stiffness estimate, from its own return tallies (see ``stiffness``)."""
         p = self.patches
-        if self.config.overshoot <= 0 or len(p) == 0:
-            return np.zeros(3)
-        a_total = float(p.area.sum())
-        if self._shot_abs.sum() > 0:
-            lam = self._reflected_abs / np.maximum(self._shot_abs, 1e-300)
-            q = self._received_abs / np.maximum(self._shot_abs, 1e-300)
-        else:  # before the first shot: a closed scene with the mean reflectance
-            lam = (p.rho * p.area[:, None]).sum(axis=0) / a_total
-            q = np.ones(3)
-        lam = np.clip(lam, 0.0, 1.0 - 1e-6)
-        if lam.max() < self.config.overshoot_min_return:
-            return np.zeros(3)  # not stiff: the tail is short, plain shooting keeps B >= 0
-        u = self.ledger.unshot + self.ledger.in_flight
-        return self.config.overshoot * q * u / ((1.0 - lam) * a_total)
+        if len(p) == 0:
+            return Stiffness.none()
+        area = float(p.area.sum())
+        mean_rho = (p.rho * p.area[:, None]).sum(axis=0) / area
+        return stiffness(self.tallies, area, self.config, mean_rho)
 
-    def shoot_amounts(self) -> np.ndarray:
+    def ambient(self, st: "Stiffness") -> np.ndarray:
+        """(3,) W/m^2: the irradiance still to arrive, as if spread uniformly (see module doc)."""
+        if not st.scale.any():
+            return st.scale
+        return st.scale * (self.ledger.unshot + self.ledger.in_flight)
+
+    def shoot_amounts(self, st: "Stiffness") -> np.ndarray:
         """(n,3) W/m^2 each patch would shoot now: dB plus its overshoot rho * g."""
-        g = self.ambient()
+        g = self.ambient(st)
         if not g.any():
             return self.patches.unshot
         return self.patches.unshot + self.patches.rho * g
 
-    def rank(self, power: np.ndarray, min_rays=None, max_shooters=None):
+    def rank(self, power: np.ndarray, min_rays=None, max_shooters=None, ray_factor: float = 1.0):
         """Top-K shooters by |power| (m,3) W and their ray counts (fixed power per ray).
 
         min_rays: fewest rays per shooter, scalar or (m,) (default config.min_rays);
-        max_shooters: K (default config.max_shooters); the batch's ray budget caps it too.
+        max_shooters: K (default config.max_shooters); the batch's ray budget caps it too;
+        ray_factor: the power per ray is ``power_per_ray * ray_factor`` (stiff scenes).
         """
         cfg = self.config
         floor = cfg.min_rays if min_rays is None else min_rays
@@ -156,7 +168,7 @@ class Solver:
         idx = idx[scalar[idx] > self._negligible]
         # Rays in proportion to power, clamped; fill the batch's ray budget
         floor = floor if np.isscalar(floor) else np.asarray(floor)[idx]
-        counts = np.clip(np.ceil(scalar[idx] / self.power_per_ray), floor, cfg.max_rays_per_shot)
+        counts = np.clip(np.ceil(scalar[idx] / (self.power_per_ray * ray_factor)), floor, cfg.max_rays_per_shot)
         counts = counts.astype(np.int64)
         fits = np.cumsum(counts) <= cfg.batch_rays
         fits[:1] = True
@@ -165,13 +177,18 @@ class Solver:
     def select(self):
         """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2)."""
         p = self.patches
-        amounts = self.shoot_amounts()
+        st = self.stiffness()
+        amounts = self.shoot_amounts(st)
         power = amounts * p.area[:, None]
-        idx, counts = self.rank(power)
+        idx, counts = self.rank(power, st.min_rays(self.config), ray_factor=st.ray_factor)
         return idx, counts, power[idx], amounts[idx]
 
     def account(self, shot: np.ndarray, tally, absorbed: np.ndarray, extra_lost=0.0) -> None:
-        """Book one batch: ledger accounts and the return-ratio tallies used by ``ambient``."""
+        """Book one batch: ledger accounts and the return-ratio tallies used by ``ambient``.
+
+        shot: (m,3) W per ray of the rays patches shot (rays that continue light
+        shot elsewhere, like twins', are not counted again).
+        """
         p = self.patches
         led = self.ledger
         led.absorbed = led.absorbed + absorbed
@@ -180,10 +197,7 @@ class Solver:
         unshot = p.unshot * p.area[:, None]  # W per patch, signed
         led.unshot = unshot.sum(axis=0)
         led.unshot_abs = np.abs(unshot).sum(axis=0)
-        received = np.abs(tally.received).sum(axis=0)
-        self._shot_abs += np.abs(shot).sum(axis=0)
-        self._received_abs += received
-        self._reflected_abs += received - np.abs(absorbed)
+        self.tallies += np.stack([np.abs(shot).sum(axis=0), tally.lost + np.abs(extra_lost), tally.landed, tally.kept])
         self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
 
     # -- the three phases every kind of step shares -----------------------------------
@@ -197,10 +211,10 @@ class Solver:
         """Power (3,) W of hits that leave the books another way (subscenes: boundaries)."""
         return np.zeros(3)
 
-    def commit(self, batch, tally) -> None:
-        """Receivers keep rho of what arrived; book the batch."""
+    def commit(self, batch, tally, shot=None) -> None:
+        """Receivers keep rho of what arrived; book the batch (``shot``: see ``account``)."""
         absorbed = deposit(self.patches, tally.received)
-        self.account(batch.power, tally, absorbed, self.crossings(batch, tally))
+        self.account(batch.power if shot is None else shot, tally, absorbed, self.crossings(batch, tally))
 
     def counted(self, shots: int, rays: int) -> int:
         self.stats.shots += shots
@@ -313,6 +327,66 @@ class Solver:
                 f"flipped on: {', '.join(worst)}"
             )
         return out
+
+
+@dataclass(frozen=True)
+class Stiffness:
+    """How a (sub)scene shoots now: the ambient scale and the ray budget factor.
+
+    scale      : (3,) 1/m^2, F with ambient irradiance g = F * U (U: signed
+                 unshot power, W); zeros: no overshooting
+    ray_factor : the power per ray is multiplied by this (>= 1; 1 unless stiff)
+    """
+
+    scale: np.ndarray
+    ray_factor: float = 1.0
+
+    @staticmethod
+    def none() -> "Stiffness":
+        return Stiffness(np.zeros(3), 1.0)
+
+    def min_rays(self, config: SolverConfig) -> int:
+        """Fewest rays per patch shot: the floor shrinks with the ray factor.
+
+        The floor spreads a weak shot over the hemisphere; in a stiff scene every
+        patch is shot many times (overshoot, then corrections), each with a new
+        lattice, so its directions add up over the run.  A full floor there made
+        each sweep cost 32 rays per patch for power worth one.
+        """
+        return max(1, int(math.ceil(config.min_rays / self.ray_factor)))
+
+
+def stiffness(tallies: np.ndarray, area: float, config: SolverConfig, mean_rho: np.ndarray | None = None) -> Stiffness:
+    """Estimate how stiff a scene is from its return tallies and choose how to shoot.
+
+    tallies: (4,3) W (magnitudes) shot by patches, lost (escaped or back faces),
+    landed and kept (``Solver.tallies``, summed over subscenes for a divided
+    job); area: m^2 of all patches.  The share of shot power that lands is
+    q = 1 - lost / shot (light crossing a boundary is still on its way), and the
+    return ratio lambda = q * kept / landed (q times the mean rho where light
+    lands).  Before the first shot ``mean_rho`` stands in for lambda (a closed
+    scene); without it, nothing is assumed.
+
+    Stiff (lambda >= overshoot_min_return): F = overshoot * q / ((1-lambda) * A),
+    and with ``stiff_rays`` the power per ray grows by sqrt((1-min_return)/(1-lambda)).
+    """
+    shot, lost, landed, kept = np.asarray(tallies, np.float64)
+    if area <= 0:
+        return Stiffness.none()
+    if shot.sum() > 0 and landed.sum() > 0:
+        q = np.clip(1.0 - lost / np.maximum(shot, 1e-300), 0.0, 1.0)
+        lam = q * kept / np.maximum(landed, 1e-300)
+    elif shot.sum() > 0:
+        return Stiffness.none()  # nothing has landed: an open scene
+    elif mean_rho is not None:
+        q, lam = np.ones(3), np.asarray(mean_rho, np.float64)
+    else:
+        return Stiffness.none()
+    lam = np.clip(lam, 0.0, 1.0 - 1e-6)
+    if lam.max() < config.overshoot_min_return:
+        return Stiffness.none()  # not stiff: the tail is short, plain shooting keeps B >= 0
+    factor = math.sqrt((1.0 - config.overshoot_min_return) / (1.0 - float(lam.max()))) if config.stiff_rays else 1.0
+    return Stiffness(config.overshoot * q / ((1.0 - lam) * area), max(1.0, factor))
 
 
 def solve(patches: Patches, config: SolverConfig | None = None, **run_kwargs) -> Solver:

@@ -12,7 +12,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from .energy import ACCOUNTS, Ledger
+from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .errors import ExchangeError
 from .v1 import dcrad_pb2 as pb
 
@@ -108,17 +108,39 @@ def assemble_arrays(chunks: Iterable[pb.ArrayChunk]) -> dict:
 
 def ledger_to_pb(led: Ledger) -> pb.Ledger:
     msg = pb.Ledger(closure=led.closure(), residual=led.residual())
-    for name in ACCOUNTS + ("unshot_abs",):
+    for name in ACCOUNTS + MAGNITUDES:
         getattr(msg, name).extend(float(x) for x in getattr(led, name))
     return msg
 
 
 def ledger_from_pb(msg: pb.Ledger) -> Ledger:
     led = Ledger()
-    for name in ACCOUNTS + ("unshot_abs",):
+    for name in ACCOUNTS + MAGNITUDES:
         values = list(getattr(msg, name))
         setattr(led, name, np.array(values if values else [0.0, 0.0, 0.0], np.float64))
     return led
+
+
+def plan_fields(plan) -> dict:
+    """IterateRequest fields for a ``dcrad.divide.BarrierPlan`` (None: none, shoot plainly)."""
+    if plan is None:
+        return {}
+    return {"ambient_scale": [float(x) for x in plan.stiffness.scale],
+            "ambient_rest": [float(x) for x in plan.rest], "ray_factor": float(plan.stiffness.ray_factor)}
+
+
+def plan_from_pb(req: pb.IterateRequest):
+    """The BarrierPlan an IterateRequest carries, or None."""
+    from .divide import BarrierPlan
+    from .solve import Stiffness
+
+    if not req.ambient_scale and req.ray_factor <= 0:
+        return None
+    scale = np.array(list(req.ambient_scale) or [0.0] * 3, np.float64)
+    rest = np.array(list(req.ambient_rest) or [0.0] * 3, np.float64)
+    if scale.shape != (3,) or rest.shape != (3,) or not (np.isfinite(scale).all() and np.isfinite(rest).all()):
+        raise ExchangeError("barrier plan needs finite RGB ambient_scale and ambient_rest")
+    return BarrierPlan(Stiffness(scale, max(1.0, float(req.ray_factor))), rest)
 
 
 def safe_relpath(path: str) -> str:

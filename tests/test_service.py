@@ -129,6 +129,34 @@ def test_killed_worker_resumes_from_the_last_checkpoint(office, in_process, tmp_
     assert np.allclose(npz(files)["patch_B"], b_ref, rtol=1e-12, atol=1e-15)
 
 
+def test_stiff_job_overshoots_across_workers_and_survives_a_kill(tmp_path):
+    """rho = 0.99 furnace cut in two: the barrier plan (the job's ambient overshoot and ray
+    factor) travels to the workers, a worker killed after the first barrier is replaced, and
+    the result equals the in-process divided solution to round-off."""
+    folder = tmp_path / "furnace"
+    scenes.write_builtin("furnace", folder, rho=0.99)
+    _, p, _ = prepare(folder / "furnace.obj")
+    run, subs, *_ = solve_divided(p, SolverConfig(tol=0.01, seed=4), DivideConfig(subscenes=2), record=False)
+    assert run.stopped_by == "tolerance" and all(s.plan is not None and s.plan.stiffness.scale.any() for s in subs)
+    with LocalCluster(workers=3, data=tmp_path / "data") as cluster:
+        job = submit(cluster.address, folder, "furnace.obj", {"tol": 0.01, "seed": 4}, {"subscenes": 2})
+        killed = []
+
+        def on_progress(pr):
+            if pr.barrier == 1 and not killed and pr.job.state == "running":
+                victim = next(s.worker for s in pr.subscenes if s.cell == 1)
+                cluster.kill_worker(cluster.worker_ports.index(int(victim.rsplit(":", 1)[1])))
+                killed.append(victim)
+
+        progress = watch(cluster.address, job.job_id, on_progress)
+        files = fetch(cluster.address, job.job_id)
+    final = progress[-1]
+    assert killed and final.job.state == "done", final.job.error
+    assert next(s for s in final.subscenes if s.cell == 1).reassigned >= 1
+    assert final.barrier == run.barriers and final.ledger.closure < 1e-10
+    assert np.allclose(npz(files)["patch_B"], p.radiosity, rtol=1e-12, atol=1e-15)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

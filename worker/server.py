@@ -24,7 +24,7 @@ from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
-from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb
+from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb
 
 log = logging.getLogger("dcrad.worker")
 
@@ -35,7 +35,8 @@ MAX_MESSAGE = 8 * 1024 * 1024
 def status_of(key: pb.SubsceneKey, sub: Subscene, compute_s: float = 0.0) -> pb.SubsceneStatus:
     st = sub.state()
     return pb.SubsceneStatus(key=key, ledger=ledger_to_pb(st.ledger), shots=st.shots, rays=st.rays,
-                             twin_entries=st.twin_entries, twin_bytes=st.twin_bytes, compute_s=compute_s)
+                             twin_entries=st.twin_entries, twin_bytes=st.twin_bytes, compute_s=compute_s,
+                             area=st.area, return_tallies=[float(x) for x in st.tallies.ravel()])
 
 
 async def read_stream(request_iterator, head: str):
@@ -87,9 +88,13 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         sub, k = self._get(request.key, context)
         if sub is None:
             await context.abort(grpc.StatusCode.NOT_FOUND, f"no subscene {k} on this worker")
+        try:
+            plan = plan_from_pb(request)
+        except DcradError as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
         async with self.locks[k]:
             t0 = time.perf_counter()
-            await asyncio.to_thread(sub.iterate, max(1, request.batches))
+            await asyncio.to_thread(sub.iterate, max(1, request.batches), plan)
             self.compute[k] = self.compute.get(k, 0.0) + time.perf_counter() - t0
             out = sub.collect()
             for chunk in arrays_to_chunks(out.to_arrays()):

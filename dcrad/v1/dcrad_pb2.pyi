@@ -35,7 +35,7 @@ class FileChunk(_message.Message):
     def __init__(self, path: _Optional[str] = ..., offset: _Optional[int] = ..., total_bytes: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class Ledger(_message.Message):
-    __slots__ = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported", "closure", "residual", "unshot_abs")
+    __slots__ = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported", "closure", "residual", "unshot_abs", "in_flight_abs")
     EMITTED_FIELD_NUMBER: _ClassVar[int]
     ABSORBED_FIELD_NUMBER: _ClassVar[int]
     ESCAPED_FIELD_NUMBER: _ClassVar[int]
@@ -47,6 +47,7 @@ class Ledger(_message.Message):
     CLOSURE_FIELD_NUMBER: _ClassVar[int]
     RESIDUAL_FIELD_NUMBER: _ClassVar[int]
     UNSHOT_ABS_FIELD_NUMBER: _ClassVar[int]
+    IN_FLIGHT_ABS_FIELD_NUMBER: _ClassVar[int]
     emitted: _containers.RepeatedScalarFieldContainer[float]
     absorbed: _containers.RepeatedScalarFieldContainer[float]
     escaped: _containers.RepeatedScalarFieldContainer[float]
@@ -58,7 +59,8 @@ class Ledger(_message.Message):
     closure: float
     residual: float
     unshot_abs: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, emitted: _Optional[_Iterable[float]] = ..., absorbed: _Optional[_Iterable[float]] = ..., escaped: _Optional[_Iterable[float]] = ..., back_faces: _Optional[_Iterable[float]] = ..., unshot: _Optional[_Iterable[float]] = ..., in_flight: _Optional[_Iterable[float]] = ..., imported: _Optional[_Iterable[float]] = ..., exported: _Optional[_Iterable[float]] = ..., closure: _Optional[float] = ..., residual: _Optional[float] = ..., unshot_abs: _Optional[_Iterable[float]] = ...) -> None: ...
+    in_flight_abs: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, emitted: _Optional[_Iterable[float]] = ..., absorbed: _Optional[_Iterable[float]] = ..., escaped: _Optional[_Iterable[float]] = ..., back_faces: _Optional[_Iterable[float]] = ..., unshot: _Optional[_Iterable[float]] = ..., in_flight: _Optional[_Iterable[float]] = ..., imported: _Optional[_Iterable[float]] = ..., exported: _Optional[_Iterable[float]] = ..., closure: _Optional[float] = ..., residual: _Optional[float] = ..., unshot_abs: _Optional[_Iterable[float]] = ..., in_flight_abs: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SolverSettings(_message.Message):
     __slots__ = ("tol", "time_limit", "max_rays", "seed", "rays_per_power", "patch_size", "scale")
@@ -251,7 +253,7 @@ class LoadRequest(_message.Message):
     def __init__(self, header: _Optional[_Union[SubsceneHeader, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...
 
 class SubsceneStatus(_message.Message):
-    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes", "compute_s")
+    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes", "compute_s", "area", "return_tallies")
     KEY_FIELD_NUMBER: _ClassVar[int]
     LEDGER_FIELD_NUMBER: _ClassVar[int]
     SHOTS_FIELD_NUMBER: _ClassVar[int]
@@ -259,6 +261,8 @@ class SubsceneStatus(_message.Message):
     TWIN_ENTRIES_FIELD_NUMBER: _ClassVar[int]
     TWIN_BYTES_FIELD_NUMBER: _ClassVar[int]
     COMPUTE_S_FIELD_NUMBER: _ClassVar[int]
+    AREA_FIELD_NUMBER: _ClassVar[int]
+    RETURN_TALLIES_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
     ledger: Ledger
     shots: int
@@ -266,15 +270,23 @@ class SubsceneStatus(_message.Message):
     twin_entries: int
     twin_bytes: int
     compute_s: float
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ..., compute_s: _Optional[float] = ...) -> None: ...
+    area: float
+    return_tallies: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ..., compute_s: _Optional[float] = ..., area: _Optional[float] = ..., return_tallies: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class IterateRequest(_message.Message):
-    __slots__ = ("key", "batches")
+    __slots__ = ("key", "batches", "ambient_scale", "ambient_rest", "ray_factor")
     KEY_FIELD_NUMBER: _ClassVar[int]
     BATCHES_FIELD_NUMBER: _ClassVar[int]
+    AMBIENT_SCALE_FIELD_NUMBER: _ClassVar[int]
+    AMBIENT_REST_FIELD_NUMBER: _ClassVar[int]
+    RAY_FACTOR_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
     batches: int
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., batches: _Optional[int] = ...) -> None: ...
+    ambient_scale: _containers.RepeatedScalarFieldContainer[float]
+    ambient_rest: _containers.RepeatedScalarFieldContainer[float]
+    ray_factor: float
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., batches: _Optional[int] = ..., ambient_scale: _Optional[_Iterable[float]] = ..., ambient_rest: _Optional[_Iterable[float]] = ..., ray_factor: _Optional[float] = ...) -> None: ...
 
 class IterateReply(_message.Message):
     __slots__ = ("array", "status")
