@@ -268,7 +268,7 @@ class RemoteSubscene:
             return self._state0
         tallies = np.array(list(s.return_tallies) or [0.0] * 12, np.float64).reshape(4, 3)
         return SubsceneState(self.cell, ledger_from_pb(s.ledger), s.shots, s.rays, s.twin_entries, s.twin_bytes,
-                             s.area, tallies)
+                             s.area, tallies, s.twins_delivered, s.twin_blocks)
 
     def radiosity(self) -> np.ndarray:
         """(n,3) radiosity of the subscene's patches at the last barrier."""

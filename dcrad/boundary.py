@@ -29,7 +29,7 @@ import numpy as np
 from .errors import ExchangeError, PartitionError
 from .sampling import concentric_disk, concentric_disk_inverse
 
-__all__ = ["Boundary", "make_boundary", "TwinBuffer", "transfer", "RayParcel", "transfer_rays", "KEY_LIMIT"]
+__all__ = ["Boundary", "make_boundary", "coarsen_directions", "direction_levels", "TwinBuffer", "transfer", "RayParcel", "transfer_rays", "KEY_LIMIT"]
 
 KEY_LIMIT = np.iinfo(np.int64).max  # packed keys must stay <= this
 
@@ -139,7 +139,7 @@ class Boundary:
         """(m,3) directions -> (m,) i1: 0 for A->B (d.n > 0), 1 for B->A (d.n <= 0)."""
         return (np.asarray(dirs)[:, self.axis] <= 0).astype(np.int8)
 
-    def sample(self, cell, bin, crossing, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def sample(self, cell, bin, crossing, u: np.ndarray, level=0) -> tuple[np.ndarray, np.ndarray]:
         """Ray origins and directions leaving through portal cells inside direction bins.
 
         cell, bin, crossing : (m,) ints; u : (m,4) in [0,1) (float32 keeps the
@@ -147,6 +147,9 @@ class Boundary:
         exactly on the plane (the caller offsets them along the direction); dirs
         (m,3) f8 unit are cosine distributed (uniform in projected solid angle)
         within the bin, around +n for crossing 0 and -n for crossing 1.
+        level : scalar or (m,) ints >= 0; at level l, ``bin`` is the corner of a
+        block of 2**l x 2**l bins (cut at the square's edge) and directions fill
+        the whole block (``coarsen_directions``).
         """
         cell = np.asarray(cell, np.int64)
         bin = np.asarray(bin, np.int64)
@@ -164,8 +167,11 @@ class Boundary:
         origins[:, b] = self.lo[1] + (iv + u[:, 1]) * ((self.hi[1] - self.lo[1]) / nv)
 
         i0, i1 = np.divmod(bin, self.solid)
+        span = np.left_shift(1, np.asarray(level, np.int64))
+        w0 = np.minimum(i0 + span, self.solid) - i0  # block width in bins (1 at level 0)
+        w1 = np.minimum(i1 + span, self.solid) - i1
         dt = u.dtype if u.dtype.kind == "f" else np.float64
-        sq = np.stack([(i0 + u[:, 2]) / self.solid, (i1 + u[:, 3]) / self.solid], axis=1).astype(dt)
+        sq = np.stack([(i0 + w0 * u[:, 2]) / self.solid, (i1 + w1 * u[:, 3]) / self.solid], axis=1).astype(dt)
         disk = concentric_disk(sq).astype(np.float64)
         z = np.sqrt(np.maximum(0.0, 1.0 - np.einsum("ij,ij->i", disk, disk)))
         dirs = np.empty((len(cell), 3))
@@ -198,6 +204,65 @@ def make_boundary(
         lo=(float(lo[0]), float(lo[1])), hi=(float(hi[0]), float(hi[1])),
         side_a=int(side_a), side_b=int(side_b), cells=cells, solid=int(solid),
     )
+
+
+def direction_levels(solid: int) -> int:
+    """Levels of the direction quadtree for ``solid`` bins per side: 0 (one bin) up to the hemisphere."""
+    return max(0, math.ceil(math.log2(max(int(solid), 1)))) + 1
+
+
+def coarsen_directions(bid, crossing, cell, bins, power, solid, threshold: float):
+    """Directional resolution where the energy is: group weak twin entries into coarser bins.
+
+    Entries are (boundary id, crossing, portal cell, bin) with signed power (k, c)
+    W; ``solid`` (k,) or scalar is each entry's bins per side.  A quadtree over
+    the direction square: an entry whose power is at least ``threshold`` (one
+    ray's power) keeps its bin; the others of a 2x2 block of bins are summed,
+    and a block strong enough becomes one group, else it joins the next level,
+    up to the whole hemisphere of its portal cell and crossing.  Power is
+    summed exactly; only the directions of weak light get coarser.
+
+    Returns (group (k,) i8: the group of each entry, and the groups' arrays
+    {bid, crossing, cell, bin (block corner), level, power (g, c)}).
+    """
+    bid, crossing, cell, bins = (np.asarray(x, np.int64) for x in (bid, crossing, cell, bins))
+    power = np.asarray(power, np.float64)
+    power = power.reshape(len(bins), power.shape[-1] if power.ndim == 2 else 1)
+    k = len(bins)
+    solid = np.broadcast_to(np.asarray(solid, np.int64), (k,))
+    smax = int(solid.max()) if k else 1
+    top = direction_levels(smax) - 1
+    i0, i1 = np.divmod(bins, solid)
+    cells = int(cell.max()) + 1 if k else 1
+    group = np.full(k, -1, np.int64)
+    parts: dict[str, list] = {n: [] for n in ("bid", "crossing", "cell", "bin", "level", "power")}
+    todo = np.arange(k)
+    n_groups = 0
+    for level in range(top + 1):
+        if len(todo) == 0:
+            break
+        a, b = i0[todo] >> level, i1[todo] >> level
+        key = (((bid[todo] * 2 + crossing[todo]) * cells + cell[todo]) * smax + a) * smax + b
+        _, first, inv = np.unique(key, return_index=True, return_inverse=True)
+        inv = inv.ravel()
+        gp = np.stack([np.bincount(inv, weights=power[todo, c], minlength=len(first))
+                       for c in range(power.shape[1])], axis=1)
+        strong = np.abs(gp).sum(axis=1) >= threshold if level < top else np.ones(len(first), bool)
+        settle = strong[inv]
+        new_id = np.cumsum(strong) - 1 + n_groups
+        group[todo[settle]] = new_id[inv[settle]]
+        rep = todo[first[strong]]
+        parts["bid"].append(bid[rep])
+        parts["crossing"].append(crossing[rep])
+        parts["cell"].append(cell[rep])
+        parts["bin"].append(((i0[rep] >> level) << level) * solid[rep] + ((i1[rep] >> level) << level))
+        parts["level"].append(np.full(len(rep), level, np.int64))
+        parts["power"].append(gp[strong])
+        n_groups += int(strong.sum())
+        todo = todo[~settle]
+    if k == 0:
+        return group, {n: np.zeros(0, np.int64) for n in parts} | {"power": np.zeros((0, power.shape[1]))}
+    return group, {n: np.concatenate(v) for n, v in parts.items()}
 
 
 class TwinBuffer:

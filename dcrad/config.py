@@ -52,6 +52,9 @@ class SolverConfig:
                                 (reflected / shot) is at least this (stiff)
     stiff_rays           bool   in stiff scenes budget rays against the whole   True
                                 solution E/(1-lambda), not the emitted power
+    adaptive_bins        bool   twin entries weaker than one ray are shot from  True
+                                coarser direction blocks (boundary.coarsen_
+                                directions); False: every bin on its own
     ===================  =====  ==============================================  ========
 
     Rays per shot are proportional to the power shot (a fixed power per ray,
@@ -76,6 +79,7 @@ class SolverConfig:
     overshoot: float = 1.0
     overshoot_min_return: float = 0.85
     stiff_rays: bool = True
+    adaptive_bins: bool = True
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str) -> None:

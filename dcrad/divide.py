@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .boundary import Boundary, RayParcel, TwinBuffer, transfer, transfer_rays
+from .boundary import (Boundary, RayParcel, TwinBuffer, coarsen_directions, direction_levels, transfer,
+                       transfer_rays)
 from .config import SolverConfig
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .patches import Patches
@@ -68,6 +69,8 @@ class SubsceneState:
     area: float = 0.0  #: m^2 of the subscene's patches
     #: (4,3) W shot by patches, lost, landed, kept (``Solver.tallies``), for the job's stiffness
     tallies: np.ndarray = field(default_factory=lambda: np.zeros((4, 3)))
+    twins_delivered: int = 0  #: twin entries received from neighbours so far
+    twin_blocks: int = 0  #: what they were stored as (``Subscene.deliver``)
 
 
 class Subscene(Solver):
@@ -92,7 +95,9 @@ class Subscene(Solver):
         mc = max((b.n_cells for b in boundaries), default=1)
         mb = max((b.n_bins for b in boundaries), default=1)
         self.sent = TwinBuffer(mc, mb)  #: recorded crossings, handed over at the barrier
-        self.pending = TwinBuffer(mc, mb)  #: power received from neighbours, still to shoot here
+        #: power received from neighbours, still to shoot here; its bin is level * n_bins + bin,
+        #: a block of 2**level x 2**level bins (``coarsen_directions``)
+        self.pending = TwinBuffer(mc, mb * direction_levels(max((b.solid for b in boundaries), default=1)))
         self.mode = mode  #: "binned" (the paper's twins) or "exact" (forward whole rays)
         if mode == "exact":
             self.sent = RayParcel()
@@ -102,9 +107,14 @@ class Subscene(Solver):
 
             raise ConfigError(f"boundary mode must be 'binned' or 'exact', not {mode!r}")
         self._offset = ray_offset(patches) if len(patches) else 1e-6
+        self.twins_delivered = 0  #: twin entries received from neighbours
+        self.twin_blocks = 0  #: what they became after coarsening (see ``deliver``)
         #: this barrier's plan from ``run_divided``: the job's Stiffness and U_rest (see ``ambient``)
         self.plan: BarrierPlan | None = None
         self._by_id = {b.id: i for i, b in enumerate(self.boundaries)}
+        self._solid_of = np.ones(max((b.id for b in self.boundaries), default=0) + 1, np.int64)  #: by boundary id
+        for b in self.boundaries:
+            self._solid_of[b.id] = b.solid
 
     def stiffness(self) -> Stiffness:
         """The job's stiffness, estimated by ``run_divided`` at the barrier (none before)."""
@@ -141,11 +151,12 @@ class Subscene(Solver):
         return idx, counts, power[idx], amounts[idx[patch]], entries
 
     def twin_rays(self, pending, entries: np.ndarray, counts: np.ndarray, power: np.ndarray) -> RayBatch:
-        """Rays from outgoing twins: points in the portal cell, directions inside the bin.
+        """Rays from outgoing twins: points in the portal cell, directions inside the bin
+        (or the block of bins, for entries coarsened on delivery: see ``deliver``).
 
         pending: ``self.pending.entries()``; entries (k,) the positions shot.
         """
-        bid, crossing, cell, bins, _ = pending
+        bid, crossing, cell, code, _ = pending
         total = int(counts.sum())
         owner, u = ray_lattice(counts, self.rng)
         e = entries[owner]
@@ -155,8 +166,10 @@ class Subscene(Solver):
             sel = np.flatnonzero(bid[e] == b.id)
             if len(sel) == 0:
                 continue
-            o, d = b.sample(cell[e[sel]], bins[e[sel]], crossing[e[sel]], u[sel])
-            side = np.where(crossing[e[sel]] == 0, 1.0, -1.0)
+            es = e[sel]
+            level, corner = np.divmod(code[es], b.n_bins)
+            o, d = b.sample(cell[es], corner, crossing[es], u[sel], level)
+            side = np.where(crossing[es] == 0, 1.0, -1.0)
             origins[sel] = o + (self._offset * side)[:, None] * b.normal[None, :]
             dirs[sel] = d
         return RayBatch(origins=origins, dirs=dirs, power=per_ray_power(power, counts), shooter=owner)
@@ -293,16 +306,36 @@ class Subscene(Solver):
         return out
 
     def deliver(self, buffer) -> None:
-        """Accept outgoing power (TwinBuffer) or rays (RayParcel) from neighbours."""
+        """Accept outgoing power (TwinBuffer) or rays (RayParcel) from neighbours.
+
+        Directional resolution where the energy is (``adaptive_bins``): twin entries
+        weaker than one ray's power are summed into coarser blocks of direction
+        bins before they are stored, so weak light costs one ray per block, not
+        one per bin.  Power is kept exactly; only its direction gets coarser.
+        """
         self.ledger.imported = self.ledger.imported + buffer.total()
-        (self.forward if isinstance(buffer, RayParcel) else self.pending).merge(buffer)
+        if isinstance(buffer, RayParcel):
+            self.forward.merge(buffer)
+        elif len(buffer):
+            bid, crossing, cell, bins, power = buffer.entries()
+            self.twins_delivered += len(bins)
+            if self.config.adaptive_bins:
+                factor = self.plan.stiffness.ray_factor if self.plan is not None else 1.0
+                _, g = coarsen_directions(bid, crossing, cell, bins, power, self._solid_of[bid],
+                                          self.power_per_ray * factor)
+                n_bins = self._solid_of[g["bid"]] ** 2
+                bid, crossing, cell, bins, power = g["bid"], g["crossing"], g["cell"], \
+                    g["level"] * n_bins + g["bin"], g["power"]
+            self.twin_blocks += len(bins)
+            self.pending.add(bid, crossing, cell, bins, power)
         self._book_in_flight()
 
     def state(self) -> SubsceneState:
         held = self._held()
         return SubsceneState(self.cell, self.ledger.copy(), self.stats.shots, self.stats.rays,
                              sum(len(h) for h in held), sum(h.nbytes() for h in held),
-                             float(self.patches.area.sum()), self.tallies.copy())
+                             float(self.patches.area.sum()), self.tallies.copy(),
+                             self.twins_delivered, self.twin_blocks)
 
     def radiosity(self) -> np.ndarray:
         return self.patches.radiosity
@@ -337,6 +370,7 @@ class DividedRun:
     stopped_by: str = ""
     wall_seconds: float = 0.0
     max_twin_bytes: int = 0
+    stiff: Stiffness | None = None  #: the last barrier plan's stiffness that changed shooting
 
 
 def job_ledger(states: list[SubsceneState]) -> Ledger:
@@ -419,6 +453,8 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
             break
         # doIterations in every subscene (in parallel when the executor allows)
         plan = barrier_plan(run.states, config)
+        if plan:
+            run.stiff = next(iter(plan.values())).stiffness
         list(executor.map(lambda h: h.iterate(iterations, plan.get(h.cell)), handles))
         # transferEnergy at the barrier
         incoming = {h.cell: h.collect() for h in handles}
@@ -582,7 +618,8 @@ def checkpoint_arrays(sub: Subscene) -> dict:
         "radiosity": sub.patches.radiosity, "unshot": sub.patches.unshot,
         "ledger": np.stack([getattr(led, a) for a in ACCOUNTS + MAGNITUDES]),
         "return_tallies": sub.tallies,
-        "stats": np.array([sub.stats.shots, sub.stats.rays, sub.stats.batches], np.int64),
+        "stats": np.array([sub.stats.shots, sub.stats.rays, sub.stats.batches, sub.twins_delivered,
+                           sub.twin_blocks], np.int64),
         "trace_seconds": np.array([sub.stats.trace_seconds]),
         "back_by_obj": sub.back_by_obj,
         "rng_state": np.frombuffer(rng, np.uint8),
@@ -603,7 +640,8 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
             setattr(sub.ledger, a, np.array(row, np.float64))
         if "return_tallies" in arrays:
             sub.tallies = np.array(arrays["return_tallies"], np.float64).reshape(4, 3)
-        sub.stats.shots, sub.stats.rays, sub.stats.batches = (int(x) for x in arrays["stats"])
+        stats = [int(x) for x in arrays["stats"]] + [0, 0]
+        sub.stats.shots, sub.stats.rays, sub.stats.batches, sub.twins_delivered, sub.twin_blocks = stats[:5]
         sub.stats.trace_seconds = float(arrays["trace_seconds"][0])
         sub.back_by_obj = np.array(arrays["back_by_obj"], np.float64)
         sub.rng.bit_generator.state = json.loads(bytes(arrays["rng_state"]).decode())

@@ -111,6 +111,16 @@ def adopt_divided(solver, run, boundaries, part, divide, subscenes: int, trace_s
         dense = sum(b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
         solver.choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
                               f"against {dense} bytes for every portal cell and bin")
+        delivered = sum(s.twins_delivered for s in run.states)
+        blocks = sum(s.twin_blocks for s in run.states)
+        if solver.config.adaptive_bins and delivered:
+            solver.choices.append(f"directional resolution where the energy is: {delivered} twin entries "
+                                  f"arrived, kept as {blocks} direction blocks (light weaker than one ray "
+                                  f"shares coarser bins)")
+    if run.stiff is not None:
+        from .solve import stiff_choice
+
+        solver.choices.append(stiff_choice(run.stiff, solver.config) + " (for the whole divided job)")
     return {"subscenes": subscenes, "boundaries": len(boundaries), "barriers": run.barriers,
             "mode": divide.mode, "iterations": divide.iterations, "solid": divide.solid,
             "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),

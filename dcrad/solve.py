@@ -120,6 +120,8 @@ class Solver:
         if self.channels == 1:
             self.choices.append("grey scene (every rho and E has equal channels): one colour channel "
                                 "is tallied and copied to the other two")
+        #: the stiffness estimate of the last batch that overshot or stretched rays (None: never)
+        self.stiff: Stiffness | None = None
         self.snapshots: list[Snapshot] = []
         self.snapshot_B: list[np.ndarray] = []
         self._next_snapshot = 0
@@ -134,6 +136,15 @@ class Solver:
         area = float(p.area.sum())
         mean_rho = (p.rho * p.area[:, None]).sum(axis=0) / area
         return stiffness(self.tallies, area, self.config, mean_rho)
+
+    def note_stiffness(self, st: "Stiffness") -> "Stiffness":
+        if st.scale.any() or st.ray_factor != 1.0:
+            self.stiff = st
+        return st
+
+    def stiffness_choice(self) -> list[str]:
+        """The report's line on stiffness, when it changed how this run shot."""
+        return [stiff_choice(self.stiff, self.config)] if self.stiff is not None else []
 
     def ambient(self, st: "Stiffness") -> np.ndarray:
         """(3,) W/m^2: the irradiance still to arrive, as if spread uniformly (see module doc)."""
@@ -177,7 +188,7 @@ class Solver:
     def select(self):
         """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2)."""
         p = self.patches
-        st = self.stiffness()
+        st = self.note_stiffness(self.stiffness())
         amounts = self.shoot_amounts(st)
         power = amounts * p.area[:, None]
         idx, counts = self.rank(power, st.min_rays(self.config), ray_factor=st.ray_factor)
@@ -288,6 +299,7 @@ class Solver:
                 on_progress(self)
         self.snapshot(force=True)
         self.stats.stopped_by = reason
+        self.choices = [c for c in self.choices if not c.startswith("stiff scene")] + self.stiffness_choice()
         self.stats.wall_seconds = self.elapsed()
         return self.stats
 
@@ -336,10 +348,12 @@ class Stiffness:
     scale      : (3,) 1/m^2, F with ambient irradiance g = F * U (U: signed
                  unshot power, W); zeros: no overshooting
     ray_factor : the power per ray is multiplied by this (>= 1; 1 unless stiff)
+    ret        : the return ratio it was estimated from
     """
 
     scale: np.ndarray
     ray_factor: float = 1.0
+    ret: float = 0.0  #: the measured return ratio lambda (largest channel)
 
     @staticmethod
     def none() -> "Stiffness":
@@ -354,6 +368,16 @@ class Stiffness:
         each sweep cost 32 rays per patch for power worth one.
         """
         return max(1, int(math.ceil(config.min_rays / self.ray_factor)))
+
+
+def stiff_choice(st: Stiffness, config: SolverConfig) -> str:
+    """The report's line on what a stiff scene changed."""
+    what = []
+    if st.scale.any():
+        what.append("ambient overshooting")
+    if st.ray_factor != 1.0:
+        what.append(f"power per ray x{st.ray_factor:.3g} and at least {st.min_rays(config)} rays a patch shot")
+    return f"stiff scene (return ratio {st.ret:.4f}): " + ", ".join(what)
 
 
 def stiffness(tallies: np.ndarray, area: float, config: SolverConfig, mean_rho: np.ndarray | None = None) -> Stiffness:
@@ -386,7 +410,7 @@ def stiffness(tallies: np.ndarray, area: float, config: SolverConfig, mean_rho: 
     if lam.max() < config.overshoot_min_return:
         return Stiffness.none()  # not stiff: the tail is short, plain shooting keeps B >= 0
     factor = math.sqrt((1.0 - config.overshoot_min_return) / (1.0 - float(lam.max()))) if config.stiff_rays else 1.0
-    return Stiffness(config.overshoot * q / ((1.0 - lam) * area), max(1.0, factor))
+    return Stiffness(config.overshoot * q / ((1.0 - lam) * area), max(1.0, factor), float(lam.max()))
 
 
 def solve(patches: Patches, config: SolverConfig | None = None, **run_kwargs) -> Solver:

@@ -126,7 +126,8 @@ def plan_fields(plan) -> dict:
     if plan is None:
         return {}
     return {"ambient_scale": [float(x) for x in plan.stiffness.scale],
-            "ambient_rest": [float(x) for x in plan.rest], "ray_factor": float(plan.stiffness.ray_factor)}
+            "ambient_rest": [float(x) for x in plan.rest], "ray_factor": float(plan.stiffness.ray_factor),
+            "return_ratio": float(plan.stiffness.ret)}
 
 
 def plan_from_pb(req: pb.IterateRequest):
@@ -140,7 +141,7 @@ def plan_from_pb(req: pb.IterateRequest):
     rest = np.array(list(req.ambient_rest) or [0.0] * 3, np.float64)
     if scale.shape != (3,) or rest.shape != (3,) or not (np.isfinite(scale).all() and np.isfinite(rest).all()):
         raise ExchangeError("barrier plan needs finite RGB ambient_scale and ambient_rest")
-    return BarrierPlan(Stiffness(scale, max(1.0, float(req.ray_factor))), rest)
+    return BarrierPlan(Stiffness(scale, max(1.0, float(req.ray_factor)), float(req.return_ratio)), rest)
 
 
 def safe_relpath(path: str) -> str:

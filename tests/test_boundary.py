@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from dcrad.boundary import Boundary, TwinBuffer, make_boundary, transfer
+from dcrad.boundary import Boundary, TwinBuffer, coarsen_directions, direction_levels, make_boundary, transfer
 from dcrad.errors import ExchangeError, PartitionError
 from dcrad.sampling import concentric_disk, cosine_hemisphere
 
@@ -196,6 +196,63 @@ def test_sample_is_cosine_distributed_over_hemisphere(crossing):
     # and origins cover the rectangle uniformly (area fractions of the portal grid)
     counts = np.bincount(b.cell_of(o), minlength=b.n_cells)
     assert np.allclose(counts / m, 1 / b.n_cells, rtol=0.05)
+
+
+@pytest.mark.parametrize("solid", [6, 8])
+def test_sample_from_a_block_of_bins_is_uniform_over_its_bins(solid):
+    """A level-l block: every direction falls in one of the block's bins (cut at the square's
+    edge for solid 6), equally often (equal projected solid angle)."""
+    b = boundary(axis=1, solid=solid)
+    rng = np.random.default_rng(3)
+    for level, corner in ((1, (2, 4)), (2, (4, 4)), (direction_levels(solid) - 1, (0, 0))):
+        m = 40000
+        start = corner[0] * solid + corner[1]
+        _, d = b.sample(np.zeros(m, np.int64), np.full(m, start), np.zeros(m, np.int8), rng.random((m, 4)),
+                        np.full(m, level))
+        i0, i1 = np.divmod(b.bin_of(d), solid)
+        span = 1 << level
+        inside = (i0 >= corner[0]) & (i0 < corner[0] + span) & (i1 >= corner[1]) & (i1 < corner[1] + span)
+        assert inside.all()
+        expected = {(a, c) for a in range(corner[0], min(corner[0] + span, solid))
+                    for c in range(corner[1], min(corner[1] + span, solid))}
+        counts = np.bincount(i0 * solid + i1, minlength=solid * solid)[[a * solid + c for a, c in expected]]
+        assert stats.chisquare(counts).pvalue > 1e-4
+
+
+def test_coarsen_directions_keeps_strong_bins_and_sums_weak_ones():
+    solid = 8
+    # boundary 0, crossing 0, cell 5: one strong bin, three weak ones in one 2x2 block,
+    # and weak ones scattered; cell 6: a + and a - that cancel; cell 9 (crossing 1): one weak entry
+    bins = np.array([0 * 8 + 0, 2 * 8 + 2, 2 * 8 + 3, 3 * 8 + 3, 7 * 8 + 7, 6 * 8 + 0, 1, 2, 5])
+    cell = np.array([5, 5, 5, 5, 5, 5, 6, 6, 9])
+    crossing = np.array([0, 0, 0, 0, 0, 0, 0, 0, 1])
+    power = np.array([5.0, 0.4, 0.4, 0.4, 0.1, 0.2, 0.7, -0.7, 0.01])[:, None] * np.ones(3) / 3
+    group, g = coarsen_directions(np.zeros(9), crossing, cell, bins, power, solid, threshold=1.0)
+    assert (group >= 0).all()
+    # exact: every group holds the sum of its members, and nothing else
+    for k in range(len(g["bin"])):
+        assert np.allclose(g["power"][k], power[group == k].sum(axis=0), rtol=0, atol=1e-15)
+    # the strong bin stays on its own, at level 0
+    k0 = group[0]
+    assert (group == k0).sum() == 1 and g["level"][k0] == 0 and g["bin"][k0] == 0
+    # the three weak bins of the block (2..3, 2..3) sum to 1.2 >= 1: one level-1 group
+    k1 = group[1]
+    assert set(np.flatnonzero(group == k1)) == {1, 2, 3} and g["level"][k1] == 1 and g["bin"][k1] == 2 * 8 + 2
+    # weak leftovers climb to the whole hemisphere of their cell and crossing
+    top = direction_levels(solid) - 1
+    for i in (4, 5, 8):
+        assert g["level"][group[i]] == top and g["bin"][group[i]] == 0
+    assert group[4] == group[5] and group[4] != group[8]
+    # + and - in one cell cancel into one group with no power
+    assert group[6] == group[7] and np.allclose(g["power"][group[6]], 0)
+    assert all(g["cell"][group[i]] == cell[i] and g["crossing"][group[i]] == crossing[i] for i in range(9))
+
+
+def test_coarsen_directions_empty_and_one_bin():
+    group, g = coarsen_directions([], [], [], [], np.zeros((0, 3)), 8, 1.0)
+    assert len(group) == 0 and g["power"].shape == (0, 3)
+    group, g = coarsen_directions([1], [0], [2], [0], np.array([[1e-9] * 3]), 1, 1.0)
+    assert group.tolist() == [0] and g["level"].tolist() == [0]
 
 
 def test_cell_of_clamps():

@@ -131,3 +131,24 @@ def test_checkpoint_resumes_bit_identically(office, mode):
     assert np.array_equal(a.patches.radiosity, clone.patches.radiosity)
     assert np.array_equal(a.sent.total(), clone.sent.total()) and len(a.sent) == len(clone.sent)
     assert clone.ledger.closure() < 1e-10 and clone.stats.rays == a.stats.rays
+
+
+def test_adaptive_direction_bins_cost_less_for_the_same_accuracy(office, reference):
+    """Directional resolution where the energy is: twin light weaker than one ray shares
+    coarser direction blocks.  Fewer blocks than entries, fewer twin bytes and rays, the
+    books close, and the error against the reference stays that of full resolution."""
+    runs = {}
+    for adaptive in (False, True):
+        _, p, _ = prepare(office)
+        run, subs, *_ = solve_divided(p, SolverConfig(tol=0.01, seed=1, adaptive_bins=adaptive),
+                                      DivideConfig(subscenes=2, solid=16))
+        assert run.stopped_by == "tolerance" and max(run.barrier_closures) < 1e-10
+        delivered = sum(s.twins_delivered for s in subs)
+        blocks = sum(s.twin_blocks for s in subs)
+        err = rms_error(p.radiosity, reference.radiosity, reference.area)
+        runs[adaptive] = (delivered, blocks, run.max_twin_bytes, run.snapshots[-1].rays, err)
+    off, on = runs[False], runs[True]
+    assert off[0] == off[1] > 0  # without: every entry is kept as it came
+    assert on[1] < 0.5 * on[0], on
+    assert on[2] < off[2] and on[3] < off[3], (on, off)
+    assert on[4] < 1.1 * off[4], (on[4], off[4])

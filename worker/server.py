@@ -36,7 +36,8 @@ def status_of(key: pb.SubsceneKey, sub: Subscene, compute_s: float = 0.0) -> pb.
     st = sub.state()
     return pb.SubsceneStatus(key=key, ledger=ledger_to_pb(st.ledger), shots=st.shots, rays=st.rays,
                              twin_entries=st.twin_entries, twin_bytes=st.twin_bytes, compute_s=compute_s,
-                             area=st.area, return_tallies=[float(x) for x in st.tallies.ravel()])
+                             area=st.area, return_tallies=[float(x) for x in st.tallies.ravel()],
+                             twins_delivered=st.twins_delivered, twin_blocks=st.twin_blocks)
 
 
 async def read_stream(request_iterator, head: str):

@@ -253,7 +253,7 @@ class LoadRequest(_message.Message):
     def __init__(self, header: _Optional[_Union[SubsceneHeader, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...
 
 class SubsceneStatus(_message.Message):
-    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes", "compute_s", "area", "return_tallies")
+    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes", "compute_s", "area", "return_tallies", "twins_delivered", "twin_blocks")
     KEY_FIELD_NUMBER: _ClassVar[int]
     LEDGER_FIELD_NUMBER: _ClassVar[int]
     SHOTS_FIELD_NUMBER: _ClassVar[int]
@@ -263,6 +263,8 @@ class SubsceneStatus(_message.Message):
     COMPUTE_S_FIELD_NUMBER: _ClassVar[int]
     AREA_FIELD_NUMBER: _ClassVar[int]
     RETURN_TALLIES_FIELD_NUMBER: _ClassVar[int]
+    TWINS_DELIVERED_FIELD_NUMBER: _ClassVar[int]
+    TWIN_BLOCKS_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
     ledger: Ledger
     shots: int
@@ -272,21 +274,25 @@ class SubsceneStatus(_message.Message):
     compute_s: float
     area: float
     return_tallies: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ..., compute_s: _Optional[float] = ..., area: _Optional[float] = ..., return_tallies: _Optional[_Iterable[float]] = ...) -> None: ...
+    twins_delivered: int
+    twin_blocks: int
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ..., compute_s: _Optional[float] = ..., area: _Optional[float] = ..., return_tallies: _Optional[_Iterable[float]] = ..., twins_delivered: _Optional[int] = ..., twin_blocks: _Optional[int] = ...) -> None: ...
 
 class IterateRequest(_message.Message):
-    __slots__ = ("key", "batches", "ambient_scale", "ambient_rest", "ray_factor")
+    __slots__ = ("key", "batches", "ambient_scale", "ambient_rest", "ray_factor", "return_ratio")
     KEY_FIELD_NUMBER: _ClassVar[int]
     BATCHES_FIELD_NUMBER: _ClassVar[int]
     AMBIENT_SCALE_FIELD_NUMBER: _ClassVar[int]
     AMBIENT_REST_FIELD_NUMBER: _ClassVar[int]
     RAY_FACTOR_FIELD_NUMBER: _ClassVar[int]
+    RETURN_RATIO_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
     batches: int
     ambient_scale: _containers.RepeatedScalarFieldContainer[float]
     ambient_rest: _containers.RepeatedScalarFieldContainer[float]
     ray_factor: float
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., batches: _Optional[int] = ..., ambient_scale: _Optional[_Iterable[float]] = ..., ambient_rest: _Optional[_Iterable[float]] = ..., ray_factor: _Optional[float] = ...) -> None: ...
+    return_ratio: float
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., batches: _Optional[int] = ..., ambient_scale: _Optional[_Iterable[float]] = ..., ambient_rest: _Optional[_Iterable[float]] = ..., ray_factor: _Optional[float] = ..., return_ratio: _Optional[float] = ...) -> None: ...
 
 class IterateReply(_message.Message):
     __slots__ = ("array", "status")
