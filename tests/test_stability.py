@@ -51,6 +51,7 @@ def test_stiff_furnace_converges_to_the_exact_identity(tmp_path, rho, patch, ray
     # the identity's shortfall is exactly the signed unsettled power: bounded by the residual
     assert np.all(identity_error(p, rho) <= s.residual() + lost + 1e-9)
     assert np.all(identity_error(p, rho) < 2 * tol)
+    assert any(c.startswith("stiff scene") and "overshooting" in c for c in s.choices), s.choices
 
 
 def test_overshooting_needs_far_fewer_bounces(tmp_path):
@@ -85,6 +86,7 @@ def test_stiff_divided_run_converges_exactly(tmp_path, rho):
     assert np.all(identity_error(p, rho) <= led.residual() + lost + 1e-9)
     assert np.all(identity_error(p, rho) < 2 * tol)
     assert all(s.plan is not None and s.plan.stiffness.scale.any() for s in subs)  # it did overshoot
+    assert run.stiff is not None and run.stiff.ret > 0.85
 
 
 def test_divided_overshooting_needs_fewer_barriers_for_the_same_limit(tmp_path):
@@ -297,3 +299,5 @@ def test_report_lists_what_was_left_out(tmp_path):
     assert r.returncode == 0, r.stderr
     choices = json.loads((out2 / "report.json").read_text())["choices"]
     assert not any("grey" in c for c in choices) and any("sparse" in c for c in choices)
+    assert any(c.startswith("directional resolution where the energy is") for c in choices)
+    assert not any(c.startswith("stiff scene") for c in choices)  # rho <= 0.8 in the Cornell box
