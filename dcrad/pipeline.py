@@ -108,9 +108,11 @@ def adopt_divided(solver, run, boundaries, part, divide, subscenes: int, trace_s
     """
     solver.adopt_divided(run, trace_seconds)
     if divide.mode == "binned":
-        dense = sum(b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
+        # dense: a sent and a pending buffer for each crossing of every portal cell and bin
+        dense = sum(2 * b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
         solver.choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
-                              f"against {dense} bytes for every portal cell and bin")
+                              f"against {dense} bytes dense (sent and pending, every portal cell, bin "
+                              f"and crossing)")
         delivered = sum(s.twins_delivered for s in run.states)
         blocks = sum(s.twin_blocks for s in run.states)
         if solver.config.adaptive_bins and delivered:

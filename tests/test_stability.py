@@ -130,20 +130,21 @@ def test_stiffness_is_measured_as_the_return_ratio(tmp_path):
 
 
 def test_return_tallies_do_not_cancel_between_signs():
-    """A positive and a negative ray landing on one patch: the signed tally is 0, the landed
-    magnitude is both; an escaping ray counts as lost."""
+    """Rays of both signs: a positive one lands on a rho 0.7 patch, a negative one on a
+    rho 0.3 patch, and one of each escapes.  Every signed sum is 0; the magnitudes are not."""
     from dcrad.rays import Tracer
     from dcrad.shoot import RayBatch, trace
 
-    v = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1]], float)
-    p = Patches(v, np.array([[0, 2, 1]]), 0.7, 0.0, np.array([0]), np.zeros(1), ["floor"])
-    assert p.normal[0, 1] > 0
-    origins = np.array([[0.2, 1, 0.2], [0.2, 1, 0.2], [0.2, 1, 0.2]])
-    dirs = np.array([[0, -1, 0], [0, -1, 0], [0, 1, 0]], float)
-    power = np.array([[1.0] * 3, [-1.0] * 3, [0.5] * 3])
-    t = trace(Tracer(p.triangles), RayBatch(origins, dirs, power, np.zeros(3, np.int64)), p)
-    assert np.allclose(t.received, 0) and np.allclose(t.landed, 2) and np.allclose(t.kept, 1.4)
-    assert np.allclose(t.lost, 0.5) and np.allclose(t.escaped, 0.5)
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1], [2, 0, 0], [3, 0, 0], [2, 0, 1]], float)
+    rho = np.array([[0.7] * 3, [0.3] * 3])
+    p = Patches(v, np.array([[0, 2, 1], [3, 5, 4]]), rho, 0.0, np.arange(2), np.zeros(2), ["a", "b"])
+    assert (p.normal[:, 1] > 0).all()
+    origins = np.array([[0.2, 1, 0.2], [2.2, 1, 0.2], [0.2, 1, 0.2], [2.2, 1, 0.2]])
+    dirs = np.array([[0, -1, 0], [0, -1, 0], [0, 1, 0], [0, 1, 0]], float)
+    power = np.array([[1.0] * 3, [-1.0] * 3, [0.5] * 3, [-0.5] * 3])
+    t = trace(Tracer(p.triangles), RayBatch(origins, dirs, power, np.zeros(4, np.int64)), p)
+    assert np.allclose(t.received.sum(axis=0), 0) and np.allclose(t.escaped, 0)
+    assert np.allclose(t.landed, 2) and np.allclose(t.kept, 1.0) and np.allclose(t.lost, 1.0)
 
 
 def test_stiff_rays_spend_fewer_rays_for_the_same_limit(tmp_path):
