@@ -12,8 +12,10 @@ import functools
 import json
 import math
 import os
+import queue
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import grpc
@@ -140,13 +142,42 @@ def submit(address: str, path, solver: dict | None = None, divide: dict | None =
         return pb_grpc.CoordinatorStub(ch).Submit(_requests(next(iter(files)), files, solver, divide, preview))
 
 
+_END = object()
+
+
 def watch(address: str, job_id: str, on_progress=None) -> pb.Progress | None:
-    """Follow the job until its Watch stream ends; the last Progress (None if none came)."""
+    """Follow the job until its Watch stream ends; the last Progress (None if none came).
+
+    The stream is read in a helper thread and handed over through a queue that the
+    calling thread polls, so Ctrl-C (KeyboardInterrupt, delivered to the main
+    thread only) is taken within 0.2 s even when gRPC is blocked waiting for the
+    next message; the stream is then cancelled.
+    """
     last = None
     with channel(address) as ch:
         stream = pb_grpc.CoordinatorStub(ch).Watch(pb.JobRef(job_id=job_id))
+        items: queue.Queue = queue.Queue()
+
+        def read():
+            try:
+                for progress in stream:
+                    items.put(progress)
+            except BaseException as exc:  # handed to the caller
+                items.put(exc)
+            items.put(_END)
+
+        threading.Thread(target=read, name=f"watch-{job_id}", daemon=True).start()
         try:
-            for last in stream:
+            while True:
+                try:
+                    item = items.get(timeout=0.2)
+                except queue.Empty:
+                    continue
+                if item is _END:
+                    break
+                if isinstance(item, BaseException):
+                    raise item
+                last = item
                 if on_progress is not None:
                     on_progress(last)
         except BaseException:
