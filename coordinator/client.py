@@ -12,7 +12,7 @@ import functools
 import json
 import math
 import os
-import queue
+import signal
 import sys
 import tempfile
 import threading
@@ -142,42 +142,13 @@ def submit(address: str, path, solver: dict | None = None, divide: dict | None =
         return pb_grpc.CoordinatorStub(ch).Submit(_requests(next(iter(files)), files, solver, divide, preview))
 
 
-_END = object()
-
-
 def watch(address: str, job_id: str, on_progress=None) -> pb.Progress | None:
-    """Follow the job until its Watch stream ends; the last Progress (None if none came).
-
-    The stream is read in a helper thread and handed over through a queue that the
-    calling thread polls, so Ctrl-C (KeyboardInterrupt, delivered to the main
-    thread only) is taken within 0.2 s even when gRPC is blocked waiting for the
-    next message; the stream is then cancelled.
-    """
+    """Follow the job until its Watch stream ends; the last Progress (None if none came)."""
     last = None
     with channel(address) as ch:
         stream = pb_grpc.CoordinatorStub(ch).Watch(pb.JobRef(job_id=job_id))
-        items: queue.Queue = queue.Queue()
-
-        def read():
-            try:
-                for progress in stream:
-                    items.put(progress)
-            except BaseException as exc:  # handed to the caller
-                items.put(exc)
-            items.put(_END)
-
-        threading.Thread(target=read, name=f"watch-{job_id}", daemon=True).start()
         try:
-            while True:
-                try:
-                    item = items.get(timeout=0.2)
-                except queue.Empty:
-                    continue
-                if item is _END:
-                    break
-                if isinstance(item, BaseException):
-                    raise item
-                last = item
+            for last in stream:
                 if on_progress is not None:
                     on_progress(last)
         except BaseException:
@@ -299,6 +270,9 @@ def _hms(s: float) -> str:
 def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
     """Watch with a bar; print the final line; 0 when done, 1 otherwise, 130 on Ctrl-C."""
     bar = WatchBar(tol, force=force)
+    # Ctrl-C stops watching, as in `dcrad solve`, even when started with SIGINT ignored
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler) if main else None
     try:
         last = watch(address, job_id, bar)
     except KeyboardInterrupt:
@@ -306,6 +280,8 @@ def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
         print(f"dcrad: stopped watching job {job_id}; it keeps running on the coordinator", file=sys.stderr)
         return 130
     finally:
+        if main:
+            signal.signal(signal.SIGINT, previous)
         bar.close()
     if last is None:
         print(f"dcrad: error: the coordinator sent no progress for job {job_id}", file=sys.stderr)
