@@ -24,7 +24,7 @@ import grpc
 import numpy as np
 
 from dcrad.boundary import RayParcel, TwinBuffer
-from dcrad.divide import SubsceneState, checkpoint_arrays, subscene_arrays
+from dcrad.divide import SubsceneState, subscene_arrays
 from dcrad.errors import DcradError
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
