@@ -166,6 +166,29 @@ def test_stiff_rays_spend_fewer_rays_for_the_same_limit(tmp_path):
     assert rms_error(b1, b0, area) < 0.15 * scale
 
 
+@pytest.mark.parametrize("divided", [False, True])
+def test_one_stiff_channel_among_mild_ones(divided):
+    """rho = (0.99, 0.6, 0.3): stiffness is per channel.  Each channel's own identity holds
+    and no patch goes negative, split or not."""
+    rho = np.array([0.99, 0.6, 0.3])
+    base = box_patches(1.0, 0.5, 0.1, {lambda c: c[:, 1] > 0.99: 1.0})
+    p = Patches(base.vertices, base.faces, np.tile(rho, (len(base.faces), 1)), base.emission, base.source,
+                base.obj, base.names)
+    cfg = SolverConfig(tol=0.01, seed=1)
+    if divided:
+        run, *_ = solve_divided(p, cfg, DivideConfig(subscenes=2), record=False)
+        led, ok = run.ledger, run.stopped_by == "tolerance" and max(run.barrier_closures) < 1e-9
+    else:
+        s = Solver(p, cfg)
+        s.run()
+        led, ok = s.ledger, s.stats.stopped_by == "tolerance" and s.ledger.closure() < 1e-9
+    assert ok and finite(p.radiosity) and p.radiosity.min() > 0
+    area = p.area.sum()
+    mean = ((p.radiosity - p.emission) * p.area[:, None]).sum(axis=0) / area
+    expect = rho * p.emitted_power / ((1 - rho) * area)
+    assert np.all(np.abs(mean - expect) / expect < 2 * cfg.tol) and led.residual() <= cfg.tol
+
+
 # == extreme ========================================================================
 
 def box_patches(size: float, rho: float, edge: float, emitters: dict) -> Patches:
