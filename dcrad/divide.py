@@ -334,7 +334,7 @@ class Subscene(Solver):
         held = self._held()
         return SubsceneState(self.cell, self.ledger.copy(), self.stats.shots, self.stats.rays,
                              sum(len(h) for h in held), sum(h.nbytes() for h in held),
-                             float(self.patches.area.sum()), self.tallies.copy(),
+                             self.patches.total_area, self.tallies.copy(),
                              self.twins_delivered, self.twin_blocks)
 
     def radiosity(self) -> np.ndarray:
@@ -402,7 +402,7 @@ def barrier_plan(states: list[SubsceneState], config: SolverConfig) -> dict:
     area = sum(s.area for s in states)
     tallies = sum((s.tallies for s in states), np.zeros((4, 3)))
     st = stiffness(tallies, area, config)
-    if not st.scale.any() and st.ray_factor == 1.0:
+    if not st.active:
         return {}
     held = {s.cell: s.ledger.unshot + s.ledger.in_flight for s in states}
     total = sum(held.values(), np.zeros(3))

@@ -105,6 +105,18 @@ class Patches:
         return triangle_areas(self.triangles)
 
     @cached_property
+    def total_area(self) -> float:
+        """Sum of the patch areas (m^2)."""
+        return float(self.area.sum())
+
+    @cached_property
+    def mean_rho(self) -> np.ndarray:
+        """(3,) area-weighted mean reflectance (zeros for an empty table)."""
+        if self.total_area <= 0:
+            return np.zeros(3)
+        return (self.rho * self.area[:, None]).sum(axis=0) / self.total_area
+
+    @cached_property
     def normal(self) -> np.ndarray:
         """(n, 3) float64 unit front normals."""
         return triangle_normals(self.triangles)

@@ -133,12 +133,10 @@ class Solver:
         p = self.patches
         if len(p) == 0:
             return Stiffness.none()
-        area = float(p.area.sum())
-        mean_rho = (p.rho * p.area[:, None]).sum(axis=0) / area
-        return stiffness(self.tallies, area, self.config, mean_rho)
+        return stiffness(self.tallies, p.total_area, self.config, p.mean_rho)
 
     def note_stiffness(self, st: "Stiffness") -> "Stiffness":
-        if st.scale.any() or st.ray_factor != 1.0:
+        if st.active:
             self.stiff = st
         return st
 
@@ -358,6 +356,11 @@ class Stiffness:
     @staticmethod
     def none() -> "Stiffness":
         return Stiffness(np.zeros(3), 1.0)
+
+    @property
+    def active(self) -> bool:
+        """True when it changes how the scene shoots (overshoot or a larger power per ray)."""
+        return bool(self.scale.any()) or self.ray_factor != 1.0
 
     def min_rays(self, config: SolverConfig) -> int:
         """Fewest rays per patch shot: the floor shrinks with the ray factor.
