@@ -20,8 +20,10 @@ from pathlib import Path
 
 import grpc
 
+from dcrad.config import SolverConfig
 from dcrad.errors import DcradError, SceneFormatError
 from dcrad.objfile import inside_folder
+from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import FileAssembler, file_chunks, safe_relpath
@@ -301,9 +303,9 @@ def cmd_submit(args) -> int:
     from dcrad.pipeline import resolve_scene
 
     address = resolve_address(args.coordinator)
-    solver = dict(tol=args.tol, seed=args.seed, time_limit=args.time_limit, max_rays=args.max_rays,
-                  rays_per_power=args.rays_per_power, patch_size=args.patch_size, scale=args.scale)
-    divide = dict(subscenes=args.subscenes, mode=args.boundary, iterations=args.iterations)
+    solver = from_args(SolverConfig, args).as_dict() | {"patch_size": args.patch_size, "scale": args.scale}
+    # subscenes 0 travels as 0: the coordinator makes one per registered worker
+    divide = divide_from_args(args, max(args.subscenes, 1)).as_dict() | {"subscenes": args.subscenes}
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
         job = submit(address, resolve_scene(args.scene, Path(tmp)), solver, divide)
     print(job.job_id, flush=True)
@@ -352,8 +354,6 @@ def cmd_jobs(args) -> int:
 
 def add_client_commands(subparsers) -> None:
     """Add submit, watch, fetch, cancel and jobs to the ``dcrad`` subcommands."""
-    from dcrad.config import SolverConfig
-
     d = SolverConfig()
 
     def command(name, func, help):
@@ -368,17 +368,9 @@ def add_client_commands(subparsers) -> None:
 
     p = command("submit", cmd_submit, "upload a scene to the coordinator as a job; prints the job id")
     p.add_argument("scene", help="an .obj/.gltf/.glb file (with its .mtl, buffers, images) or a built-in scene")
-    p.add_argument("--subscenes", type=int, default=0, help="k subscenes (default 0: one per registered worker)")
-    p.add_argument("--boundary", choices=("binned", "exact"), default="binned", help="boundary mode")
-    p.add_argument("--iterations", type=int, default=0, help="batches per subscene between barriers (0: default)")
-    p.add_argument("--tol", type=float, default=d.tol, help=f"stop at this residual (default {d.tol})")
-    p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
-    p.add_argument("--time-limit", type=float, default=0.0, help="stop after this many seconds (0: none)")
-    p.add_argument("--max-rays", type=int, default=0, help="stop after this many rays (0: none)")
-    p.add_argument("--patch-size", type=float, default=0.0, help="largest patch edge in metres (0: automatic)")
-    p.add_argument("--rays-per-power", type=float, default=d.rays_per_power,
-                   help=f"rays for shooting the emitted power once (default {d.rays_per_power:g})")
-    p.add_argument("--scale", type=float, default=1.0, help="multiply scene coordinates by this")
+    add_divide_flags(p, "k subscenes (default 0: one per registered worker)")
+    add_flags(p, SolverConfig)
+    add_scene_flags(p)
     p.add_argument("--wait", action="store_true", help="watch the job and fetch its results when done")
     p.add_argument("--out", default=None, help="with --wait: results folder (default ./out/<job id>)")
     progress_flag(p)

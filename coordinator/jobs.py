@@ -14,6 +14,8 @@ the RMS error against the final solution is measured when the run ends.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import json
 import logging
 import math
 import shutil
@@ -33,11 +35,13 @@ from dcrad.energy import rms_error
 from dcrad.errors import DcradError
 from dcrad.pipeline import _is_floor_plan, adopt_divided, prepare, write_outputs
 from dcrad.report import residual_estimate, run_report, write_json
+from dcrad.settings import from_pb
 from dcrad.solve import Solver
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import ledger_to_pb
 
 from .remote import NoWorkers, RemoteSubscene, WorkerPool
+from .store import CheckpointWriter, JobRecord, JobStore, Resume
 
 log = logging.getLogger("dcrad.coordinator")
 
@@ -168,6 +172,8 @@ class Job:
     report: dict | None = None
     preview: LivePreview | None = None
     curve: ErrorCurve = field(default_factory=ErrorCurve)
+    divide: dict | None = None  #: the DivideConfig it runs with (kept in the record, for a resume)
+    resume: Resume | None = None  #: checkpoints to resume from, after a coordinator restart
     _waiters: list = field(default_factory=list)  #: (loop, asyncio.Event) of watchers
 
     def summary(self) -> pb.JobSummary:
@@ -199,9 +205,8 @@ class Job:
 
 
 def solver_config(s: pb.SolverSettings) -> SolverConfig:
-    d = SolverConfig()
-    return SolverConfig(tol=s.tol or d.tol, time_limit=s.time_limit, max_rays=s.max_rays, seed=s.seed,
-                        rays_per_power=s.rays_per_power or d.rays_per_power)
+    """The job's SolverConfig: every field the client set, defaults for the rest (``dcrad.settings``)."""
+    return from_pb(SolverConfig, s)
 
 
 class JobManager:
@@ -219,6 +224,8 @@ class JobManager:
         #: counters over all jobs, updated at every barrier (for /metrics)
         self.metrics = {"barriers": 0, "rays": 0, "bytes_relayed": 0, "previews": 0}
         self._metrics_lock = threading.Lock()
+        self.store = JobStore(self.root / "jobs")
+        self._reload()
 
     def count(self, **deltas) -> None:
         with self._metrics_lock:
@@ -232,6 +239,69 @@ class JobManager:
 
     def get(self, job_id: str) -> Job | None:
         return self.jobs.get(job_id)
+
+    # == durability (coordinator.store) ============================================
+    def _save(self, job: Job) -> None:
+        """Write the job's record (atomically); a failing disk is logged, never fatal."""
+        rec = JobRecord(id=job.id, spec=job.spec, state=job.state, error=job.error, created=job.created,
+                        started=job.started, finished=job.finished, subscenes=job.subscenes,
+                        residual=job.residual, divide=job.divide)
+        try:
+            self.store.save(rec)
+        except OSError as exc:
+            log.warning("job %s: cannot write its record (%s); it will not survive a restart", job.id, exc)
+
+    @staticmethod
+    def _resume_handles(job: Job, handles: list) -> Resume | None:
+        """Give each handle its checkpoint from disk; None (start over) if they do not match."""
+        resume, job.resume = job.resume, None
+        if resume is None:
+            return None
+        if sorted(resume.cells) != sorted(h.cell for h in handles):
+            log.warning("job %s: checkpoints on disk are for cells %s, the job has %s; it starts over",
+                        job.id, sorted(resume.cells), sorted(h.cell for h in handles))
+            return None
+        for h in handles:
+            h.checkpoint = resume.cells[h.cell]
+        log.info("job %s resumes from barrier %d (%.1f s in) after a coordinator restart",
+                 job.id, resume.barrier, resume.elapsed)
+        return resume
+
+    @staticmethod
+    def _left(config: SolverConfig, resume: Resume | None) -> SolverConfig:
+        """A resumed job's time limit counts the time it ran before the restart."""
+        if resume is None or not config.time_limit:
+            return config
+        return dataclasses.replace(config, time_limit=max(1e-3, config.time_limit - resume.elapsed))
+
+    def _reload(self) -> None:
+        """Every job under the data folder: ended ones are listed and fetchable; the others
+        resume from their last checkpointed barrier (or start over) once workers register."""
+        for rec in self.store.load_all():
+            job = Job(id=rec.id, spec=rec.spec, root=self.store.folder(rec.id), state=rec.state,
+                      error=rec.error, created=rec.created, started=rec.started, finished=rec.finished,
+                      subscenes=rec.subscenes, residual=rec.residual, divide=rec.divide)
+            self.jobs[job.id] = job
+            if rec.state in TERMINAL:
+                report = job.root / "out" / "report.json"
+                try:
+                    job.report = json.loads(report.read_text()) if report.exists() else None
+                except (OSError, ValueError) as exc:
+                    log.warning("job %s: its report %s is unreadable (%s)", job.id, report, exc)
+                measured = ((job.report or {}).get("error_curve") or {}).get("measured")
+                if measured:
+                    job.curve.measured = [tuple(m) for m in measured["points"]]
+                    job.curve.label = measured.get("label", "")
+                closure = float(((job.report or {}).get("ledger") or {}).get("closure", 0.0))
+                job.updates.append(pb.Progress(job=job.summary(),
+                                               ledger=pb.Ledger(residual=job.residual, closure=closure)))
+                continue
+            job.state, job.resume = "queued", self.store.resume(job.id)
+            if job.resume is None:
+                job.divide = None  # nothing to resume: cut afresh, for the workers there are now
+            log.info("job %s (%s) was %s when the coordinator stopped: %s", job.id, rec.spec.scene, rec.state,
+                     f"it resumes from barrier {job.resume.barrier}" if job.resume else "it starts over")
+            self.start(job)
 
     # == submit ===================================================================
     def create(self, spec: pb.JobSpec, files: dict[str, bytes]) -> Job:
@@ -255,6 +325,7 @@ class JobManager:
             # name the file as the user uploaded it, not by the coordinator's folder
             raise type(exc)(str(exc).replace(f"{scene_dir}/", "").replace(str(scene_dir), ".")) from None
         self.jobs[job.id] = job
+        self._save(job)
         return job
 
     def start(self, job: Job) -> None:
@@ -262,9 +333,8 @@ class JobManager:
 
     @staticmethod
     def _divide(spec: pb.JobSpec, workers: int) -> DivideConfig:
-        d, dflt = spec.divide, DivideConfig()
-        return DivideConfig(subscenes=d.subscenes or max(1, workers), iterations=d.iterations or dflt.iterations,
-                            solid=d.solid or dflt.solid, cell_size=d.cell_size, mode=d.mode or dflt.mode)
+        """The job's DivideConfig; subscenes unset or 0: one per live worker."""
+        return from_pb(DivideConfig, spec.divide, subscenes=spec.divide.subscenes or max(1, workers))
 
     # == run ======================================================================
     def _run(self, job: Job) -> None:
@@ -278,6 +348,8 @@ class JobManager:
             log.error("job %s crashed:\n%s", job.id, traceback.format_exc())
         finally:
             job.finished = time.time()
+            self._save(job)
+            self.store.drop_checkpoints(job.id)  # ended: the results are in out/
             job.curve.kept = []  # a failed job frees its snapshots too
             if job.preview is not None:
                 job.preview.close()
@@ -298,10 +370,15 @@ class JobManager:
         if live == 0:
             raise NoWorkers(f"no worker registered within {self.worker_wait:.0f} s")
         divide = self._divide(spec, live)
+        divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
         subs, boundaries, parents, part = build_subscenes(patches, config, divide)
         job.subscenes = len(subs)
         handles = [RemoteSubscene(job.id, s, self.pool, self.rpc_timeout) for s in subs]
-        job.state, job.started = "running", time.time()
+        resume = self._resume_handles(job, handles)
+        job.state, job.started = "running", time.time() - (resume.elapsed if resume else 0.0)
+        job.divide = dataclasses.asdict(divide)
+        self._save(job)
+        writer = CheckpointWriter(job.root / "checkpoints")
         try:
             for h in handles:
                 h.place()
@@ -312,6 +389,7 @@ class JobManager:
             done = {"rays": 0, "bytes_relayed": 0}  # counted into the metrics so far
 
             def on_barrier(run):
+                writer.submit(run.barriers, {h.cell: h.checkpoint for h in handles}, time.time() - job.started)
                 values = [h.radiosity() for h in handles]
                 b = assemble(len(patches), patches.area, parents, pieces, values)
                 job.residual = run.ledger.residual()
@@ -330,8 +408,10 @@ class JobManager:
             from dcrad.divide import run_divided
 
             with ThreadPoolExecutor(max_workers=len(handles)) as ex:
-                run = run_divided(handles, boundaries, config, divide.batches_per_barrier, ex,
-                                  on_barrier=on_barrier, should_stop=job.cancel.is_set)
+                run = run_divided(handles, boundaries, self._left(config, resume), divide.batches_per_barrier, ex,
+                                  on_barrier=on_barrier, should_stop=job.cancel.is_set,
+                                  first_barrier=resume.barrier if resume else 0)
+            writer.close()
 
             # Results: the same files as `dcrad solve`
             patches.radiosity = assemble(len(patches), patches.area, parents, pieces,
@@ -358,11 +438,16 @@ class JobManager:
                 "preview_seconds": job.preview.seconds,
             }
             report["error_curve"] = self.curve_dict(job)
+            report["divided"]["checkpoints"] = {k: v for k, v in writer.stats.items() if k != "per_barrier"}
+            if resume is not None:
+                report["choices"].append(f"resumed from barrier {resume.barrier} after a coordinator restart "
+                                         f"(checkpoints on disk)")
             write_json(out / "report.json", report)
             job.report = report
             job.residual = run.ledger.residual()
             job.state = "cancelled" if run.stopped_by == "stopped" else "done"
         finally:
+            writer.close()
             for h in handles:
                 h.drop()
 

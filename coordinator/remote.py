@@ -14,7 +14,6 @@ is lost or counted twice.
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -26,6 +25,7 @@ import numpy as np
 from dcrad.boundary import RayParcel, TwinBuffer
 from dcrad.divide import SubsceneState, subscene_arrays
 from dcrad.errors import DcradError
+from dcrad.settings import to_pb
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_from_pb, plan_fields
@@ -140,7 +140,7 @@ class RemoteSubscene:
         self.job_id, self.cell, self.pool, self.timeout = job_id, sub.cell, pool, timeout
         self.mode = sub.mode
         self.key = pb.SubsceneKey(job_id=job_id, cell=sub.cell)
-        self.header = pb.SubsceneHeader(key=self.key, config_json=json.dumps(sub.config.as_dict()),
+        self.header = pb.SubsceneHeader(key=self.key, solver=to_pb(sub.config, pb.SolverSettings),
                                         power_per_ray=sub.power_per_ray, mode=sub.mode,
                                         names=list(sub.patches.names), local_target=sub.local_target)
         self.static = subscene_arrays(sub)

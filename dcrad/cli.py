@@ -20,8 +20,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .config import SolverConfig
+from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
 from .errors import DcradError
+from .settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args
 
 __all__ = ["main"]
 
@@ -29,23 +30,11 @@ log = logging.getLogger("dcrad")
 
 
 def _solver_args(p: argparse.ArgumentParser) -> None:
-    d = SolverConfig()
-    p.add_argument("--tol", type=float, default=d.tol, help=f"stop at this residual, unshot/emitted (default {d.tol})")
-    p.add_argument("--time-limit", type=float, default=d.time_limit, help="stop after this many seconds (0: none)")
-    p.add_argument("--max-rays", type=int, default=d.max_rays, help="stop after this many rays (0: none)")
-    p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
-    p.add_argument("--rays-per-power", type=float, default=d.rays_per_power,
-                   help=f"rays for shooting the emitted power once; sets the power per ray (default {d.rays_per_power:g})")
-    p.add_argument("--patch-size", type=float, default=0.0,
-                   help="largest patch edge in metres (default: 1/40 of the scene diagonal)")
-    p.add_argument("--scale", type=float, default=1.0, help="multiply scene coordinates by this (unit conversion to metres)")
-    p.add_argument("--subscenes", type=int, default=0,
-                   help="split into k subscenes (default: one per worker; 1: no partition, no twins)")
+    add_flags(p, SolverConfig)
+    add_scene_flags(p)
     p.add_argument("--workers", type=int, default=2,
                    help="local worker processes with an embedded coordinator (0: solve in this process)")
-    p.add_argument("--boundary", choices=("binned", "exact"), default="binned",
-                   help="boundary mode: the paper's binned twins, or exact ray forwarding")
-    p.add_argument("--iterations", type=int, default=4, help="batches per subscene between barriers")
+    add_divide_flags(p, "split into k subscenes (default: one per worker; 1: no partition, no twins)")
     p.add_argument("--planes", default="", help="explicit partition planes, e.g. x=4.06,z=4.06 (each splits "
                                                 "every cell it crosses; overrides --subscenes)")
 
@@ -65,8 +54,7 @@ def parse_planes(text: str) -> list[tuple[int, float]]:
 
 
 def _config(args) -> SolverConfig:
-    return SolverConfig(seed=args.seed, tol=args.tol, time_limit=args.time_limit,
-                        max_rays=args.max_rays, rays_per_power=args.rays_per_power)
+    return from_args(SolverConfig, args)
 
 
 class _Interrupt:
@@ -103,11 +91,9 @@ def cmd_solve(args) -> int:
     try:
         with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
             path = resolve_scene(args.scene, out / "scene" if not Path(args.scene).exists() else Path(tmp))
-            from .divide import DivideConfig
-
             planes = parse_planes(args.planes)
             k = max(args.subscenes, 2) if planes else max(args.subscenes, 1)
-            divide = DivideConfig(subscenes=k, mode=args.boundary, iterations=args.iterations)
+            divide = divide_from_args(args, k)
             report = solve_to(path, out, config, patch_size=args.patch_size, scale=args.scale,
                               on_progress=on_progress, should_stop=stop.should_stop,
                               width=args.width, height=args.height, divide=divide, planes=planes or None)
@@ -133,9 +119,9 @@ def cmd_compare(args) -> int:
     from .pipeline import resolve_scene
 
     out = Path(args.out)
-    config = SolverConfig(seed=args.seed, tol=args.tol, rays_per_power=args.rays_per_power)
+    config = from_args(SolverConfig, args)
     path = resolve_scene(args.scene, out / "scene")
-    result = compare(path, args.subscenes, config, mode=args.boundary, reference=args.reference,
+    result = compare(path, args.subscenes, config, mode=args.mode, reference=args.reference,
                      patch_size=args.patch_size or None, iterations=args.iterations)
     files = write_compare(result, out)
     ref = result["reference"]
@@ -179,11 +165,8 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
         client.scene_files(path)
         with LocalCluster(workers=args.workers) as cluster:
             print(f"dcrad: coordinator {cluster.address} with {args.workers} local workers", file=sys.stderr)
-            solver = {"tol": config.tol, "time_limit": config.time_limit, "max_rays": config.max_rays,
-                      "seed": config.seed, "rays_per_power": config.rays_per_power,
-                      "patch_size": args.patch_size, "scale": args.scale}
-            divide = {"subscenes": args.subscenes or args.workers, "mode": args.boundary,
-                      "iterations": args.iterations}
+            solver = config.as_dict() | {"patch_size": args.patch_size, "scale": args.scale}
+            divide = divide_from_args(args, args.subscenes or args.workers).as_dict()
             try:
                 job = client.submit(cluster.address, path, solver, divide, (args.width, args.height))
             except client.grpc.RpcError as exc:
@@ -319,19 +302,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", help="a scene file or a built-in scene (e.g. office:rows=1,cols=2)")
     p.add_argument("--subscenes", type=_k_list, default=(1, 2, 4, 8),
                    help="comma-separated subscene counts k (default 1,2,4,8; 1 is always included)")
-    p.add_argument("--boundary", choices=("binned", "exact"), default="binned", help="boundary mode of divided runs")
-    p.add_argument("--iterations", type=int, default=4, help="batches per subscene between barriers")
+    p.add_argument("--boundary", dest="mode", choices=BOUNDARY_MODES, default="binned",
+                   help="boundary mode of divided runs")
+    add_flags(p, DivideConfig, only=("iterations",))
     p.add_argument("--out", default="compare", help="output folder (default ./compare)")
     p.add_argument("--reference", default=None,
                    help="radiosity.npz from 'dcrad solve' to use as B* (default: a converged sequential run "
                         "with 10x the rays per power)")
-    d = SolverConfig()
-    p.add_argument("--tol", type=float, default=d.tol, help=f"residual tolerance of every run (default {d.tol})")
-    p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
+    add_flags(p, SolverConfig)
     p.add_argument("--patch-size", type=float, default=0.0,
                    help="largest patch edge in metres (default: 1/40 of the scene diagonal)")
-    p.add_argument("--rays-per-power", type=float, default=d.rays_per_power,
-                   help=f"rays for shooting the emitted power once (default {d.rays_per_power:g})")
     p.set_defaults(func=cmd_compare)
     return ap
 

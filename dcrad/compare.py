@@ -150,12 +150,12 @@ def _claims(runs: list[dict]) -> dict:
 # == the comparison ================================================================
 def compare(path, subscenes=(1, 2, 4, 8), config: SolverConfig = SolverConfig(), mode: str = "binned",
             reference=None, patch_size: float | None = None, ref_rays_factor: float = 10.0,
-            ref_tol: float | None = None, iterations: int = 4) -> dict:
+            ref_tol: float | None = None, iterations: int = 0) -> dict:
     """Solve ``path`` sequentially and divided into each k, measure RMS error curves; return a dict.
 
     subscenes : values of k; 1 (the sequential baseline S) is always included
     reference : optional radiosity.npz (from ``dcrad solve``) whose patch_B is B*
-    iterations: batches per subscene between barriers (a divided run is measured at barriers)
+    iterations: batches per subscene between barriers, 0: adaptive (a divided run is measured at barriers)
     """
     ks = sorted({int(k) for k in subscenes} | {1})
     if ks[0] < 1:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .errors import ConfigError
 
-__all__ = ["Tolerances", "SolverConfig", "TOL"]
+__all__ = ["Tolerances", "SolverConfig", "DivideConfig", "BOUNDARY_MODES", "TOL", "setting"]
 
 
 @dataclass(frozen=True)
@@ -28,34 +28,24 @@ class Tolerances:
 TOL = Tolerances()
 
 
+def setting(default, help: str, flag: bool = True):
+    """A settings field: its default and its one-line meaning.
+
+    The meaning is the field's ``--flag`` help, and ``dcrad.settings`` maps every
+    field to the command line, the wire (``dcrad.v1.SolverSettings``, same name)
+    and back; ``flag=False`` keeps it off the command line.
+    """
+    return field(default=default, metadata={"help": help, "flag": flag})
+
+
 @dataclass(frozen=True)
 class SolverConfig:
-    """Progressive-refinement settings.
+    """Progressive-refinement settings; each field's help says what it means.
 
-    ===================  =====  ==============================================  ========
-    name                 type   meaning                                         default
-    ===================  =====  ==============================================  ========
-    seed                 int    seed of every random stream in a run           0
-    tol                  float  stop when unshot/emitted power falls below      0.01
-    time_limit           float  stop after this many wall seconds (0: none)     0
-    max_rays             int    stop after this many rays in all (0: none)      0
-    rays_per_power       float  rays spent per unit of the *emitted* power,     2e5
-                                expressed as rays for shooting all of it once
-    min_rays             int    fewest rays for one shot (M_min)                32
-    max_rays_per_shot    int    most rays for one shot (M_max)                  65536
-    batch_rays           int    rays per Embree call (top-K shooters at once)   262144
-    max_shooters         int    most patches shot in one Embree call (K)        4096
-    snapshot_factor      float  snapshots at geometric steps of this ratio      1.25
-    overshoot            float  ambient overshooting strength (0: plain         1.0
-                                progressive refinement; see solve.py)
-    overshoot_min_return float  overshoot only when the measured return ratio   0.85
-                                (reflected / shot) is at least this (stiff)
-    stiff_rays           bool   in stiff scenes budget rays against the whole   True
-                                solution E/(1-lambda), not the emitted power
-    adaptive_bins        bool   twin entries weaker than one ray are shot from  True
-                                coarser direction blocks (boundary.coarsen_
-                                directions); False: every bin on its own
-    ===================  =====  ==============================================  ========
+    Every field travels: ``dcrad.settings`` derives the ``--flags``, the proto
+    message (``SolverSettings``, a field of the same name with presence) and the
+    report's ``settings`` from these fields.  To add one: a line here, a line in
+    ``SolverSettings`` in proto/dcrad/v1/dcrad.proto, ``make proto``.
 
     Rays per shot are proportional to the power shot (a fixed power per ray,
     ``emitted / rays_per_power``), clamped to [min_rays, max_rays_per_shot].
@@ -66,20 +56,24 @@ class SolverConfig:
     about that of an ordinary scene (see solve.py).
     """
 
-    seed: int = 0
-    tol: float = 0.01
-    time_limit: float = 0.0
-    max_rays: int = 0
-    rays_per_power: float = 2e5
-    min_rays: int = 32
-    max_rays_per_shot: int = 65536
-    batch_rays: int = 262144
-    max_shooters: int = 4096
-    snapshot_factor: float = 1.25
-    overshoot: float = 1.0
-    overshoot_min_return: float = 0.85
-    stiff_rays: bool = True
-    adaptive_bins: bool = True
+    seed: int = setting(0, "seed of every random stream in a run")
+    tol: float = setting(0.01, "stop when the residual (unshot + in flight) / emitted falls to this")
+    time_limit: float = setting(0.0, "stop after this many wall seconds (0: none)")
+    max_rays: int = setting(0, "stop after this many rays in all (0: none)")
+    rays_per_power: float = setting(2e5, "rays for shooting the emitted power once; sets the power per ray")
+    min_rays: int = setting(32, "fewest rays for one patch shot (M_min)")
+    max_rays_per_shot: int = setting(65536, "most rays for one patch shot (M_max)")
+    batch_rays: int = setting(262144, "rays per Embree call (the top-K shooters at once)")
+    max_shooters: int = setting(4096, "most patches shot in one Embree call (K)")
+    snapshot_factor: float = setting(1.25, "snapshots of B at geometric steps of this ratio of rays")
+    overshoot: float = setting(1.0, "ambient overshooting strength in stiff scenes (0: plain progressive "
+                                    "refinement; see solve.py)")
+    overshoot_min_return: float = setting(0.85, "overshoot only when the measured return ratio (reflected / "
+                                                "shot) is at least this (a stiff scene)")
+    stiff_rays: bool = setting(True, "in stiff scenes budget rays against the whole solution E/(1-lambda), "
+                                     "not the emitted power")
+    adaptive_bins: bool = setting(True, "twin entries weaker than one ray are shot from coarser direction "
+                                        "blocks (boundary.coarsen_directions); off: every bin on its own")
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str) -> None:
@@ -102,6 +96,44 @@ class SolverConfig:
 
     def replace(self, **changes) -> "SolverConfig":
         return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+#: boundary modes: the paper's binned twins, or exact ray forwarding
+BOUNDARY_MODES = ("binned", "exact")
+
+
+@dataclass(frozen=True)
+class DivideConfig:
+    """Divide-and-conquer settings; each field's help says what it means (``dcrad.settings``).
+
+    ``iterations`` is doIterations' n: 0 (the default) is adaptive, each subscene
+    iterates until its own residual has fallen to a quarter (or below its share of
+    tol/2), at most ``max_iterations`` batches; N > 0 is exactly N batches per
+    subscene between two barriers (fewer only when nothing is left to shoot).
+    """
+
+    subscenes: int = setting(2, "number of cells k (1: no partition, no twins)")
+    iterations: int = setting(0, "batches per subscene between barriers (0: adaptive, at most max_iterations)")
+    max_iterations: int = setting(64, "most batches per subscene between barriers when adaptive")
+    solid: int = setting(8, "direction bins per side of a portal cell: SOLIDANGLES = solid^2")
+    cell_size: float = setting(0.0, "portal cell edge in m (0: 1/128 of the scene diagonal)")
+    mode: str = setting("binned", "boundary mode: the paper's binned twins, or exact ray forwarding")
+
+    @property
+    def adaptive(self) -> bool:
+        return self.iterations == 0
+
+    @property
+    def batches_per_barrier(self) -> int:
+        return self.max_iterations if self.adaptive else self.iterations
+
+    def __post_init__(self):
+        if (self.subscenes < 1 or self.iterations < 0 or self.max_iterations < 1 or self.solid < 1
+                or self.cell_size < 0 or self.mode not in BOUNDARY_MODES):
+            raise ConfigError(f"invalid divide setting: {self}")
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)

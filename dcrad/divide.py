@@ -28,8 +28,9 @@ import numpy as np
 
 from .boundary import (Boundary, RayParcel, TwinBuffer, coarsen_directions, direction_levels, transfer,
                        transfer_rays)
-from .config import SolverConfig
+from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
+from .errors import ConfigError
 from .patches import Patches
 from .rays import Tracer
 from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
@@ -102,10 +103,8 @@ class Subscene(Solver):
         if mode == "exact":
             self.sent = RayParcel()
             self.forward = RayParcel()  #: rays from neighbours, continued here unchanged
-        elif mode != "binned":
-            from .errors import ConfigError
-
-            raise ConfigError(f"boundary mode must be 'binned' or 'exact', not {mode!r}")
+        elif mode not in BOUNDARY_MODES:
+            raise ConfigError(f"boundary mode must be one of {', '.join(BOUNDARY_MODES)}, not {mode!r}")
         self._offset = ray_offset(patches) if len(patches) else 1e-6
         self.twins_delivered = 0  #: twin entries received from neighbours
         self.twin_blocks = 0  #: what they became after coarsening (see ``deliver``)
@@ -411,16 +410,17 @@ def barrier_plan(states: list[SubsceneState], config: SolverConfig) -> dict:
 
 def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, iterations: int = 4,
                 executor: Executor | None = None, assemble_B=None, on_barrier=None,
-                should_stop=None) -> DividedRun:
+                should_stop=None, first_barrier: int = 0) -> DividedRun:
     """The paper's main loop over subscene handles.
 
     handles    : objects with iterate(n, plan), collect(), deliver(buffer), state() (Subscene, or remote)
     iterations : batches per subscene between two barriers (doIterations' n)
     assemble_B : optional callable () -> (n,3) radiosity of the whole scene, for snapshots
     on_barrier : optional callable (DividedRun) after every barrier
+    first_barrier : barriers already done (handles resumed from that barrier's checkpoints)
     """
     executor = executor or SequentialExecutor()
-    run = DividedRun(ledger=Ledger())
+    run = DividedRun(ledger=Ledger(), barriers=first_barrier)
     t0 = time.perf_counter()
 
     def barrier_snapshot(states):
@@ -472,45 +472,6 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
     run.stopped_by = reason
     run.wall_seconds = time.perf_counter() - t0
     return run
-
-
-@dataclass(frozen=True)
-class DivideConfig:
-    """Divide-and-conquer settings.
-
-    ===========  =====  ===============================================  =======
-    name         type   meaning                                          default
-    ===========  =====  ===============================================  =======
-    subscenes    int    number of cells k (1: no partition, no twins)    2
-    iterations   int    batches per subscene between barriers (the       4
-                        most, when adaptive)
-    adaptive     bool   iterate until the subscene's own residual is     True
-                        below tol/2, up to max_iterations batches
-    max_iterations int  cap of adaptive iterations per barrier           64
-    solid        int    direction bins per side: SOLIDANGLES = solid^2   8
-    cell_size    float  portal cell edge (m); 0: 1/128 of the diagonal   0
-    mode         str    "binned" twins (the paper) or "exact" rays      binned
-    ===========  =====  ===============================================  =======
-    """
-
-    subscenes: int = 2
-    iterations: int = 4
-    adaptive: bool = True
-    max_iterations: int = 64
-    solid: int = 8
-    cell_size: float = 0.0
-    mode: str = "binned"
-
-    @property
-    def batches_per_barrier(self) -> int:
-        return self.max_iterations if self.adaptive else self.iterations
-
-    def __post_init__(self):
-        from .errors import ConfigError
-
-        if (self.subscenes < 1 or self.iterations < 1 or self.max_iterations < 1 or self.solid < 1 or self.cell_size < 0
-                or self.mode not in ("binned", "exact")):
-            raise ConfigError(f"invalid divide setting: {self}")
 
 
 def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig, planes=None, boxes=None):

@@ -10,7 +10,6 @@ coordinator learns about it again.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import signal
 import time
@@ -22,6 +21,7 @@ from dcrad.boundary import RayParcel, TwinBuffer
 from dcrad.config import SolverConfig
 from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
+from dcrad.settings import from_pb
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb
@@ -72,7 +72,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Load needs a header first")
         try:
             arrays = asm.result()
-            config = SolverConfig(**json.loads(header.config_json))
+            config = from_pb(SolverConfig, header.solver)
             sub = await asyncio.to_thread(build_subscene, header.key.cell, config, header.power_per_ray,
                                           header.mode or "binned", list(header.names), arrays,
                                           header.local_target)

@@ -63,7 +63,7 @@ class Ledger(_message.Message):
     def __init__(self, emitted: _Optional[_Iterable[float]] = ..., absorbed: _Optional[_Iterable[float]] = ..., escaped: _Optional[_Iterable[float]] = ..., back_faces: _Optional[_Iterable[float]] = ..., unshot: _Optional[_Iterable[float]] = ..., in_flight: _Optional[_Iterable[float]] = ..., imported: _Optional[_Iterable[float]] = ..., exported: _Optional[_Iterable[float]] = ..., closure: _Optional[float] = ..., residual: _Optional[float] = ..., unshot_abs: _Optional[_Iterable[float]] = ..., in_flight_abs: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SolverSettings(_message.Message):
-    __slots__ = ("tol", "time_limit", "max_rays", "seed", "rays_per_power", "patch_size", "scale")
+    __slots__ = ("tol", "time_limit", "max_rays", "seed", "rays_per_power", "patch_size", "scale", "min_rays", "max_rays_per_shot", "batch_rays", "max_shooters", "snapshot_factor", "overshoot", "overshoot_min_return", "stiff_rays", "adaptive_bins")
     TOL_FIELD_NUMBER: _ClassVar[int]
     TIME_LIMIT_FIELD_NUMBER: _ClassVar[int]
     MAX_RAYS_FIELD_NUMBER: _ClassVar[int]
@@ -71,6 +71,15 @@ class SolverSettings(_message.Message):
     RAYS_PER_POWER_FIELD_NUMBER: _ClassVar[int]
     PATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     SCALE_FIELD_NUMBER: _ClassVar[int]
+    MIN_RAYS_FIELD_NUMBER: _ClassVar[int]
+    MAX_RAYS_PER_SHOT_FIELD_NUMBER: _ClassVar[int]
+    BATCH_RAYS_FIELD_NUMBER: _ClassVar[int]
+    MAX_SHOOTERS_FIELD_NUMBER: _ClassVar[int]
+    SNAPSHOT_FACTOR_FIELD_NUMBER: _ClassVar[int]
+    OVERSHOOT_FIELD_NUMBER: _ClassVar[int]
+    OVERSHOOT_MIN_RETURN_FIELD_NUMBER: _ClassVar[int]
+    STIFF_RAYS_FIELD_NUMBER: _ClassVar[int]
+    ADAPTIVE_BINS_FIELD_NUMBER: _ClassVar[int]
     tol: float
     time_limit: float
     max_rays: int
@@ -78,21 +87,32 @@ class SolverSettings(_message.Message):
     rays_per_power: float
     patch_size: float
     scale: float
-    def __init__(self, tol: _Optional[float] = ..., time_limit: _Optional[float] = ..., max_rays: _Optional[int] = ..., seed: _Optional[int] = ..., rays_per_power: _Optional[float] = ..., patch_size: _Optional[float] = ..., scale: _Optional[float] = ...) -> None: ...
+    min_rays: int
+    max_rays_per_shot: int
+    batch_rays: int
+    max_shooters: int
+    snapshot_factor: float
+    overshoot: float
+    overshoot_min_return: float
+    stiff_rays: bool
+    adaptive_bins: bool
+    def __init__(self, tol: _Optional[float] = ..., time_limit: _Optional[float] = ..., max_rays: _Optional[int] = ..., seed: _Optional[int] = ..., rays_per_power: _Optional[float] = ..., patch_size: _Optional[float] = ..., scale: _Optional[float] = ..., min_rays: _Optional[int] = ..., max_rays_per_shot: _Optional[int] = ..., batch_rays: _Optional[int] = ..., max_shooters: _Optional[int] = ..., snapshot_factor: _Optional[float] = ..., overshoot: _Optional[float] = ..., overshoot_min_return: _Optional[float] = ..., stiff_rays: _Optional[bool] = ..., adaptive_bins: _Optional[bool] = ...) -> None: ...
 
 class DivideSettings(_message.Message):
-    __slots__ = ("subscenes", "iterations", "solid", "cell_size", "mode")
+    __slots__ = ("subscenes", "iterations", "solid", "cell_size", "mode", "max_iterations")
     SUBSCENES_FIELD_NUMBER: _ClassVar[int]
     ITERATIONS_FIELD_NUMBER: _ClassVar[int]
     SOLID_FIELD_NUMBER: _ClassVar[int]
     CELL_SIZE_FIELD_NUMBER: _ClassVar[int]
     MODE_FIELD_NUMBER: _ClassVar[int]
+    MAX_ITERATIONS_FIELD_NUMBER: _ClassVar[int]
     subscenes: int
     iterations: int
     solid: int
     cell_size: float
     mode: str
-    def __init__(self, subscenes: _Optional[int] = ..., iterations: _Optional[int] = ..., solid: _Optional[int] = ..., cell_size: _Optional[float] = ..., mode: _Optional[str] = ...) -> None: ...
+    max_iterations: int
+    def __init__(self, subscenes: _Optional[int] = ..., iterations: _Optional[int] = ..., solid: _Optional[int] = ..., cell_size: _Optional[float] = ..., mode: _Optional[str] = ..., max_iterations: _Optional[int] = ...) -> None: ...
 
 class JobSpec(_message.Message):
     __slots__ = ("scene", "solver", "divide", "preview_width", "preview_height")
@@ -229,20 +249,20 @@ class SubsceneKey(_message.Message):
     def __init__(self, job_id: _Optional[str] = ..., cell: _Optional[int] = ...) -> None: ...
 
 class SubsceneHeader(_message.Message):
-    __slots__ = ("key", "config_json", "power_per_ray", "mode", "names", "local_target")
+    __slots__ = ("key", "solver", "power_per_ray", "mode", "names", "local_target")
     KEY_FIELD_NUMBER: _ClassVar[int]
-    CONFIG_JSON_FIELD_NUMBER: _ClassVar[int]
+    SOLVER_FIELD_NUMBER: _ClassVar[int]
     POWER_PER_RAY_FIELD_NUMBER: _ClassVar[int]
     MODE_FIELD_NUMBER: _ClassVar[int]
     NAMES_FIELD_NUMBER: _ClassVar[int]
     LOCAL_TARGET_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
-    config_json: str
+    solver: SolverSettings
     power_per_ray: float
     mode: str
     names: _containers.RepeatedScalarFieldContainer[str]
     local_target: float
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., config_json: _Optional[str] = ..., power_per_ray: _Optional[float] = ..., mode: _Optional[str] = ..., names: _Optional[_Iterable[str]] = ..., local_target: _Optional[float] = ...) -> None: ...
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., solver: _Optional[_Union[SolverSettings, _Mapping]] = ..., power_per_ray: _Optional[float] = ..., mode: _Optional[str] = ..., names: _Optional[_Iterable[str]] = ..., local_target: _Optional[float] = ...) -> None: ...
 
 class LoadRequest(_message.Message):
     __slots__ = ("header", "array")

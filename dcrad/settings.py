@@ -1,0 +1,131 @@
+"""Settings dataclasses <-> command-line flags and protobuf messages, by field name.
+
+One source for settings: the fields of ``SolverConfig`` (and ``DivideConfig``)
+with their defaults and help (``config.setting``) drive
+
+* ``add_flags``: one ``--flag`` per field (``--time-limit`` for ``time_limit``;
+  ``--x/--no-x`` for a bool), default and help from the field;
+* ``from_args``: the dataclass back from the parsed namespace;
+* ``to_pb`` / ``from_pb``: the message field of the same name
+  (``dcrad.v1.SolverSettings``, ``DivideSettings``); message fields have
+  presence, so an unset field is the default and an explicit 0 stays 0;
+* the report's ``settings`` (``SolverConfig.as_dict``).
+
+``missing_on_wire`` names fields that have no twin in the message; ``to_pb`` and
+``from_pb`` refuse such a dataclass, and tests/test_settings.py checks every field
+travels.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from typing import Any, TypeVar
+
+from google.protobuf.message import Message
+
+from .config import BOUNDARY_MODES, DivideConfig
+from .errors import ConfigError
+
+__all__ = ["add_flags", "add_scene_flags", "add_divide_flags", "divide_from_args", "from_args", "to_argv", "to_pb", "from_pb", "missing_on_wire", "flag_name"]
+
+T = TypeVar("T")
+
+
+def flag_name(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _flagged(cls) -> list[dataclasses.Field]:
+    return [f for f in dataclasses.fields(cls) if f.metadata.get("flag", True)]
+
+
+def add_flags(parser: argparse.ArgumentParser, cls, skip: tuple[str, ...] = (),
+              only: tuple[str, ...] | None = None) -> None:
+    """One ``--flag`` per field of the settings dataclass ``cls`` (except ``skip``; only ``only``)."""
+    d = cls()
+    for f in _flagged(cls):
+        if f.name in skip or (only is not None and f.name not in only):
+            continue
+        default = getattr(d, f.name)
+        help = f"{f.metadata.get('help', f.name)} (default {default:g})" if isinstance(default, float) \
+            else f"{f.metadata.get('help', f.name)} (default {default})"
+        if isinstance(default, bool):
+            parser.add_argument(flag_name(f.name), dest=f.name, action=argparse.BooleanOptionalAction,
+                                default=default, help=help)
+        else:
+            parser.add_argument(flag_name(f.name), dest=f.name, type=type(default), default=default, help=help)
+
+
+def add_scene_flags(parser: argparse.ArgumentParser) -> None:
+    """``--patch-size`` and ``--scale``: how a scene file becomes patches (not solver settings)."""
+    parser.add_argument("--patch-size", type=float, default=0.0,
+                        help="largest patch edge in metres (default 0: 1/40 of the scene diagonal)")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="multiply scene coordinates by this (unit conversion to metres)")
+
+
+def add_divide_flags(parser: argparse.ArgumentParser, subscenes_help: str) -> None:
+    """``--subscenes`` (0: the caller's default), ``--boundary`` (DivideConfig.mode) and the
+    other DivideConfig fields as flags; ``divide_from_args`` reads them back."""
+    d = DivideConfig()
+    mode = next(f for f in dataclasses.fields(DivideConfig) if f.name == "mode")
+    parser.add_argument("--subscenes", type=int, default=0, help=subscenes_help)
+    parser.add_argument("--boundary", dest="mode", choices=BOUNDARY_MODES, default=d.mode,
+                        help=f"{mode.metadata['help']} (default {d.mode})")
+    add_flags(parser, DivideConfig, skip=("subscenes", "mode"))
+
+
+def divide_from_args(args: argparse.Namespace, subscenes: int) -> DivideConfig:
+    """The DivideConfig of ``add_divide_flags`` with ``subscenes`` cells."""
+    return from_args(DivideConfig, args, subscenes=subscenes)
+
+
+def from_args(cls: type[T], args: argparse.Namespace, **override: Any) -> T:
+    """The settings dataclass from parsed flags (fields without a flag keep their default)."""
+    kwargs = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
+    return cls(**(kwargs | override))
+
+
+def to_argv(obj) -> list[str]:
+    """The flags that ``add_flags``/``from_args`` read back as ``obj``."""
+    argv = []
+    for f in _flagged(type(obj)):
+        value = getattr(obj, f.name)
+        if isinstance(value, bool):
+            argv.append(flag_name(f.name) if value else "--no-" + flag_name(f.name)[2:])
+        else:
+            argv += [flag_name(f.name), repr(value) if isinstance(value, float) else str(value)]
+    return argv
+
+
+def missing_on_wire(cls, message_cls: type[Message]) -> list[str]:
+    """Fields of ``cls`` with no field of the same name (and presence) in ``message_cls``."""
+    by_name = message_cls.DESCRIPTOR.fields_by_name
+    return [f.name for f in dataclasses.fields(cls) if f.name not in by_name or not by_name[f.name].has_presence]
+
+
+def _check(cls, message_cls) -> None:
+    missing = missing_on_wire(cls, message_cls)
+    if missing:
+        raise ConfigError(f"{message_cls.DESCRIPTOR.full_name} lacks {', '.join(missing)} of {cls.__name__}: "
+                          f"add them to proto/dcrad/v1/dcrad.proto as optional fields and run `make proto`")
+
+
+def to_pb(obj, message_cls: type[Message], **extra: Any) -> Message:
+    """A ``message_cls`` with every field of the dataclass ``obj`` set (plus ``extra`` fields)."""
+    _check(type(obj), message_cls)
+    msg = message_cls(**extra)
+    for f in dataclasses.fields(obj):
+        setattr(msg, f.name, getattr(obj, f.name))
+    return msg
+
+
+def from_pb(cls: type[T], msg: Message, **override: Any) -> T:
+    """The dataclass from a message: fields the message sets, defaults for the others, then ``override``.
+
+    Invalid values raise the dataclass's own ConfigError.
+    """
+    _check(cls, type(msg))
+    kwargs = {f.name: getattr(msg, f.name) for f in dataclasses.fields(cls) if msg.HasField(f.name)}
+    return cls(**(kwargs | override))
