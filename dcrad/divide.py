@@ -555,7 +555,7 @@ def subscene_arrays(sub: Subscene) -> dict:
     """What a worker needs to rebuild a subscene: its patches and boundaries."""
     p = sub.patches
     return {"vertices": p.vertices, "faces": p.faces, "rho": p.rho, "emission": p.emission,
-            "source": p.source, "obj": p.obj, "radiosity": p.radiosity, "unshot": p.unshot,
+            "source": p.source, "obj": p.obj, "radiosity": p.radiosity, "unshot": p.unshot, "twin": p.twin,
             "boundaries": boundaries_to_array(sub.boundaries)}
 
 
@@ -594,7 +594,8 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
     import json
 
     p = Patches(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
-                arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy())
+                arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy(),
+                twin=arrays.get("twin"))
     sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode, local_target)
     if "ledger" in arrays:  # resume from a checkpoint
         for a, row in zip(ACCOUNTS + MAGNITUDES, arrays["ledger"]):

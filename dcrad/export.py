@@ -25,6 +25,8 @@ NPZ_KEYS = (
     "patch_source",
     "patch_rho",
     "patch_emission",
+    "patch_twin",
+    "B_back",
 )
 
 
@@ -80,11 +82,18 @@ def write_exr(path, img_float32: np.ndarray, half: bool = True) -> None:
 
 
 # ---------------------------------------------------------------------------------
-def write_patches_ply(path, patches, dtype=np.float32) -> None:
+def _frame(vertices: np.ndarray, rotation) -> np.ndarray:
+    """Internal (Y-up) vertices back in the input file's frame (``Scene.rotation``)."""
+    return vertices if rotation is None else np.asarray(vertices, np.float64) @ np.asarray(rotation, np.float64)
+
+
+def write_patches_ply(path, patches, dtype=np.float32, rotation=None) -> None:
     """Binary little-endian PLY of the patch mesh, one face per patch, in order.
 
     Face properties: ``radiosity_r``, ``radiosity_g``, ``radiosity_b`` (``dtype``,
-    W/m^2), ``source`` and ``obj`` (int32).  Written by trimesh with
+    W/m^2), ``source`` and ``obj`` (int32), ``back`` (uint8, 1 for the back side of
+    a two-sided triangle).  ``rotation`` (Scene.rotation): vertices are written in
+    the input file's frame.  Written by trimesh with
     ``process=False`` so nothing is merged or reordered.  trimesh stores the
     vertices as float32.  Read back with ``trimesh.load(path, process=False)``;
     the face properties are in ``mesh.metadata['_ply_raw']['face']['data']``.
@@ -99,9 +108,10 @@ def write_patches_ply(path, patches, dtype=np.float32) -> None:
         "radiosity_b": b[:, 2].astype(dtype),
         "source": patches.source.astype(np.int32),
         "obj": patches.obj.astype(np.int32),
+        "back": patches.is_back.astype(np.uint8),
     }
     mesh = trimesh.Trimesh(
-        vertices=patches.vertices,
+        vertices=_frame(patches.vertices, rotation),
         faces=patches.faces,
         face_attributes=attrs,
         process=False,
@@ -135,7 +145,8 @@ def _unlit_material(tree: dict) -> None:
 
 
 def write_glb(
-    path, patches, corner_values: np.ndarray, srgb: bool = False, exposure=None, unlit: bool = True
+    path, patches, corner_values: np.ndarray, srgb: bool = False, exposure=None, unlit: bool = True,
+    rotation=None,
 ):
     """Binary glTF with baked colours: 3 unshared vertices per patch, COLOR_0 RGBA uint8.
 
@@ -147,7 +158,9 @@ def write_glb(
     is unlit (KHR_materials_unlit, white base colour) and single-sided, so
     viewers neither shade the baked light again nor show walls from behind;
     trimesh then re-imports the colours as ``visual.vertex_attributes['color']``
-    (with ``unlit=False``, no material: as ``visual.vertex_colors``).
+    (with ``unlit=False``, no material: as ``visual.vertex_colors``).  Two-sided
+    triangles are written twice, once per side, so each side shows its own light.
+    ``rotation`` (Scene.rotation): vertices in the input file's frame.
 
     returns the exposure used (float)
     """
@@ -166,7 +179,7 @@ def write_glb(
     rgba = np.full((n * 3, 4), 255, np.uint8)
     rgba[:, :3] = tonemap(lin, exposure=exposure, srgb=srgb)
     mesh = trimesh.Trimesh(
-        vertices=patches.triangles.reshape(-1, 3),
+        vertices=_frame(patches.triangles.reshape(-1, 3), rotation),
         faces=np.arange(3 * n, dtype=np.int64).reshape(n, 3),
         vertex_colors=rgba,
         process=False,
@@ -181,20 +194,23 @@ def write_glb(
 
 
 # ---------------------------------------------------------------------------------
-def input_triangle_radiosity(patches, n_input_triangles: int):
-    """Area-weighted mean B of the patches of each input triangle.
+def input_triangle_radiosity(patches, n_input_triangles: int, back: bool = False, values=None):
+    """Area-weighted mean B of the patches of each input triangle, on its front side.
 
+    ``back``: the back sides of two-sided triangles instead (one-sided ones: 0, invalid).
+    ``values`` (n, 3): another per-patch quantity than ``patches.radiosity``.
     returns (B (T, 3) float64, valid (T,) bool); triangles without patches get 0
     and valid False; triangles whose patches all have zero area get their plain mean.
     """
     T = int(n_input_triangles)
-    src = patches.source
+    side = patches.is_back == back
+    src = patches.source[side]
     if len(src) and (src.min() < 0 or src.max() >= T):
         raise SolveError(
             f"patch source indices span [{src.min()}, {src.max()}], outside [0, {T})"
         )
-    area = patches.area
-    b = np.asarray(patches.radiosity, np.float64)
+    area = patches.area[side]
+    b = np.asarray(patches.radiosity if values is None else values, np.float64)[side]
     count = np.bincount(src, minlength=T)
     den = np.bincount(src, weights=area, minlength=T)
     plain = den <= 0
@@ -215,13 +231,17 @@ def write_radiosity_npz(path, patches, n_input_triangles: int, extra: dict | Non
     key             dtype     meaning
     ==============  ========  ======================================================
     B               (T,3) f8  per input triangle: area-weighted mean of its patches
+                              (front side)
     valid           (T,) ?    False for input triangles without patches (B = 0)
+    B_back          (T,3) f8  two-sided triangles: B of the back side (only when the
+                              scene has two-sided triangles; others 0)
     patch_B         (n,3) f8  radiosity per patch (W/m^2)
     patch_unshot    (n,3) f8  unshot radiosity per patch (W/m^2)
     patch_area      (n,) f8   m^2
     patch_source    (n,) i8   input triangle of each patch
     patch_rho       (n,3) f8  reflectance
     patch_emission  (n,3) f8  emitted exitance (W/m^2)
+    patch_twin      (n,) i8   the other side of a two-sided patch, -1 for one-sided
     ==============  ========  ======================================================
 
     plus every item of ``extra`` (``np.asarray`` of each value).  Raises
@@ -238,7 +258,10 @@ def write_radiosity_npz(path, patches, n_input_triangles: int, extra: dict | Non
         "patch_source": patches.source,
         "patch_rho": patches.rho,
         "patch_emission": patches.emission,
+        "patch_twin": patches.twin,
     }
+    if patches.is_back.any():
+        arrays["B_back"] = input_triangle_radiosity(patches, n_input_triangles, back=True)[0]
     for k, v in (extra or {}).items():
         if k in arrays:
             raise ValueError(f"{path}: extra key {k!r} collides with a standard key")

@@ -3,9 +3,9 @@
 The OBJ parser keeps faces in file order (trimesh's OBJ loader regroups them
 by material) and leaves colours as exact floats.  Statements read: ``v``,
 ``f`` (``v``, ``v/vt``, ``v//vn``, ``v/vt/vn``; negative indices; polygons
-fan-triangulated in place), ``o``, ``g``, ``usemtl``, ``mtllib``.  Everything
-else (``vt``, ``vn``, ``s``, ``l``, ``p``, free-form curves, comments) is
-ignored.  Backslash line continuation is not supported.
+fan-triangulated in place), ``vt`` (texture coordinates, kept per face
+corner), ``o``, ``g``, ``usemtl``, ``mtllib``.  Everything else (``vn``,
+``s``, ``l``, ``p``, free-form curves, comments) is ignored.  Backslash line continuation is not supported.
 
 Tokens are split per line in Python; number conversion, index resolution and
 fan triangulation are done once over whole arrays.
@@ -40,6 +40,7 @@ class ObjData:
     line: np.ndarray  # (T,) int64 line number of the ``f`` statement
     groups: list  # [(object name, material name or None)]
     mtllibs: list  # [(path as written, line number)]
+    uv: np.ndarray | None = None  # (T, 3, 2) float64 texture coordinates per corner; NaN: none given
 
 
 _SLASH = re.compile(r"/\S*")
@@ -64,6 +65,8 @@ def parse_obj(text: str, label: str) -> ObjData:
     """Parse OBJ ``text``; ``label`` names the file in error messages."""
     vtok: list[str] = []
     vline: list[int] = []
+    ttok: list[str] = []
+    fnt: list[int] = []
     ftok: list[str] = []
     fcount: list[int] = []
     fline: list[int] = []
@@ -84,6 +87,10 @@ def parse_obj(text: str, label: str) -> ObjData:
                 raise _fail(label, no, f"'v' needs 3 coordinates, got {len(parts) - 1}", raw)
             vtok += parts[1:4]
             vline.append(no)
+        elif key == "vt":
+            if len(parts) < 2:
+                raise _fail(label, no, "'vt' needs at least 1 coordinate", raw)
+            ttok += (parts[1:3] + ["0"])[:2]
         elif key == "f":
             if len(parts) < 4:
                 raise _fail(label, no, f"'f' needs at least 3 vertices, got {len(parts) - 1}", raw)
@@ -93,6 +100,7 @@ def parse_obj(text: str, label: str) -> ObjData:
             fcount.append(len(parts) - 1)
             fline.append(no)
             fnv.append(len(vline))
+            fnt.append(len(ttok) // 2)
             fgroup.append(gid)
         elif key in ("o", "g"):
             obj, gid = " ".join(parts[1:]) or "default", -1
@@ -147,6 +155,11 @@ def parse_obj(text: str, label: str) -> ObjData:
     k = np.arange(len(face_of)) - np.repeat(np.cumsum(ntri) - ntri, ntri)
     a = start[face_of]
     faces = np.stack([res[a], res[a + k + 1], res[a + k + 2]], axis=1).reshape(-1, 3)
+    uv = None
+    if ttok:
+        nt_tok = np.repeat(np.asarray(fnt, np.int64), count)
+        uv = _corner_uv(ttok, ftok, nt_tok, np.asarray(fline, np.int64), count, label)
+        uv = np.stack([uv[a], uv[a + k + 1], uv[a + k + 2]], axis=1).reshape(-1, 3, 2)
     return ObjData(
         vertices=v,
         faces=np.ascontiguousarray(faces, np.int64),
@@ -154,7 +167,34 @@ def parse_obj(text: str, label: str) -> ObjData:
         line=np.asarray(fline, np.int64)[face_of],
         groups=list(groups),
         mtllibs=mtllibs,
+        uv=uv,
     )
+
+
+def _corner_uv(ttok: list, ftok: list, nt_tok: np.ndarray, fline: np.ndarray, count: np.ndarray,
+               label: str) -> np.ndarray:
+    """(corners, 2) texture coordinates of every face token; NaN where none is given."""
+    vt = _numbers(" ".join(ttok), np.float64, len(ttok))
+    if vt is None:
+        raise SceneFormatError(f"{label}: a 'vt' texture coordinate is not a number")
+    vt = vt.reshape(-1, 2)
+    # the second field of v/vt, v/vt/vn; 0 (none) for v and v//vn
+    second = [t.split("/", 2)[1] if "/" in t else "" for t in ftok]
+    idx = _numbers(" ".join(x or "0" for x in second), np.int64, len(second))
+    if idx is None:
+        raise SceneFormatError(f"{label}: a face texture-coordinate index is not an integer")
+    res = np.where(idx > 0, idx - 1, nt_tok + idx)  # negative: back from the vt read so far
+    bad = (idx != 0) & ((res < 0) | (res >= len(vt)))
+    if bad.any():
+        face = int(np.searchsorted(np.cumsum(count), int(np.argmax(bad)), side="right"))
+        raise SceneFormatError(
+            f"{label} line {fline[face]}: texture coordinate index {int(idx[np.argmax(bad)])} out of range "
+            f"({len(vt)} vt in file)"
+        )
+    out = np.full((len(idx), 2), np.nan)
+    ok = idx != 0
+    out[ok] = vt[res[ok]]
+    return out
 
 
 # -- paths ----------------------------------------------------------------------------
@@ -185,6 +225,7 @@ class MtlMaterial:
     ke: list | None = None
     ke_text: str = ""
     textures: list = field(default_factory=list)  # [(key, path as written)]
+    two_sided: bool = False  # ``two_sided 1`` (a dcrad extension; other readers ignore it)
 
 
 def _floats(tokens, mat: MtlMaterial, key: str, text: str, no: int):
@@ -229,6 +270,8 @@ def read_mtl(path: str, label: str, folder: str) -> dict[str, MtlMaterial]:
         elif key == "ke":
             mat.ke_text = " ".join(parts)
             mat.ke = _floats(parts[1:], mat, "Ke", mat.ke_text, no)
+        elif key == "two_sided":
+            mat.two_sided = parts[1].lower() in ("1", "on", "true", "yes")
         elif key.startswith("map_") or key in _MAP_KEYS:
             rest = s.strip()[len(parts[0]):].strip()
             name = parts[-1] if rest.startswith("-") else rest

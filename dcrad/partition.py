@@ -35,7 +35,7 @@ import numpy as np
 
 from .config import TOL
 from .errors import PartitionError
-from .patches import Patches, triangle_areas
+from .patches import Patches, remap_twin, triangle_areas
 from .rays import MISS, Tracer
 
 __all__ = ["Cell", "Face", "Partition", "split_planes", "partition", "clip", "faces_between",
@@ -472,5 +472,6 @@ def clip(patches: Patches, part: Partition) -> list[tuple[Patches, np.ndarray]]:
             vertices=verts, faces=faces, rho=patches.rho[parent], emission=patches.emission[parent],
             source=patches.source[parent], obj=patches.obj[parent], names=patches.names,
             radiosity=patches.radiosity[parent].copy(), unshot=patches.unshot[parent].copy(),
+            twin=remap_twin(patches.twin, parent),
         ), parent))
     return out

@@ -11,7 +11,7 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["Patches", "triangle_areas", "triangle_normals", "subdivide"]
+__all__ = ["Patches", "triangle_areas", "triangle_normals", "subdivide", "remap_twin"]
 
 
 def triangle_areas(tri: np.ndarray) -> np.ndarray:
@@ -28,6 +28,19 @@ def triangle_normals(tri: np.ndarray) -> np.ndarray:
     ok = norm > 0
     out[ok] = cross[ok] / norm[ok, None]
     return out
+
+
+def remap_twin(twin: np.ndarray, parent: np.ndarray) -> np.ndarray:
+    """Twins of a table whose row i came from row ``parent[i]`` (sorted) of one with ``twin``.
+
+    Row i gets the first row whose parent is ``twin[parent[i]]`` (-1 if none): exact
+    for rows copied whole, the same surface nearby for clipped pieces.
+    """
+    tp = twin[parent]
+    pos = np.searchsorted(parent, tp)
+    at = np.minimum(pos, max(len(parent) - 1, 0))
+    ok = (tp >= 0) & (pos < len(parent)) & (parent[at] == tp) if len(parent) else tp >= 0
+    return np.where(ok, pos, -1).astype(np.int64)
 
 
 def subdivide(vertices: np.ndarray, faces: np.ndarray, max_edge: float):
@@ -64,6 +77,11 @@ class Patches:
     names       list[str]   object names, for messages and reports
     radiosity   (n, 3) f8   B (W/m^2), starts at E
     unshot      (n, 3) f8   dB (W/m^2), radiosity not yet shot, starts at E
+    twin        (n,)   i8   two-sided surfaces: the patch on the other side of
+                            the same triangle (reversed winding, listed after
+                            the front ones); -1 for one-sided patches.  A ray
+                            that hits a patch from behind lands on its twin
+                            (shoot.trace)
     ==========  ==========  ===================================================
     """
 
@@ -76,6 +94,7 @@ class Patches:
     names: list = field(default_factory=list)
     radiosity: np.ndarray | None = None
     unshot: np.ndarray | None = None
+    twin: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, np.float64)
@@ -89,6 +108,7 @@ class Patches:
             self.radiosity = self.emission.copy()
         if self.unshot is None:
             self.unshot = self.emission.copy()
+        self.twin = np.full(n, -1, np.int64) if self.twin is None else np.ascontiguousarray(self.twin, np.int64)
 
     # -- derived geometry (cached) -------------------------------------------------
     def __len__(self) -> int:
@@ -180,6 +200,17 @@ class Patches:
     @property
     def is_grey(self) -> bool:
         """True when every rho and E has equal channels (one channel would do)."""
+            twin=remap_twin(self.twin, np.arange(len(self))[index]),
         return bool(
             np.all(self.rho == self.rho[:, :1]) and np.all(self.emission == self.emission[:, :1])
+    @cached_property
+    def is_back(self) -> np.ndarray:
+        """(n,) bool: the back side of a two-sided triangle (the later of two twins)."""
+        return (self.twin >= 0) & (np.arange(len(self)) > self.twin)
+
+    @cached_property
+    def two_sided(self) -> bool:
+        """True when some patch has a twin (its other side): shoot.trace then maps back hits."""
+        return bool((self.twin >= 0).any())
+
         )

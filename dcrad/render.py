@@ -28,11 +28,15 @@ __all__ = [
     "render",
     "tonemap",
     "luminance",
+    "scene_exposure",
 ]
 
-#: back-face flag colour, as a fraction of the image's reference radiance
-#: (99th percentile of front-face luminance) when ``render(backface_color=None)``
-BACKFACE_COLOR = (0.1, 0.0, 0.1)
+#: colour of one-sided surfaces seen from behind (flipped normals, or the outside of a
+#: room): a flat neutral grey, as a fraction of the reference radiance (the radiance the
+#: exposure maps to white) when ``render(backface_color=None)``
+BACKFACE_COLOR = (0.3, 0.3, 0.3)
+#: jittered samples per pixel of the previews (a 2 x 2 stratified pattern)
+SAMPLES = 4
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -89,17 +93,19 @@ class Camera:
         right = _unit(np.cross(fwd, self.up))
         return fwd, right, np.cross(right, fwd)
 
-    def rays(self):
-        """Primary rays through pixel centres, row-major from the top-left pixel.
+    def rays(self, jitter=(0.5, 0.5)):
+        """Primary rays through one point of each pixel, row-major from the top-left pixel.
 
+        jitter : (dx, dy) in [0, 1): where in the pixel, from its top-left corner
+        (default the centre); or (H*W, 2) one offset per pixel
         returns (origins (H*W, 3) float64, dirs (H*W, 3) float64 unit)
         """
         w, h = self.width, self.height
         fwd, right, up = self.basis()
-        x = (np.arange(w) + 0.5) / w * 2.0 - 1.0  # -1 .. 1 left to right
-        y = 1.0 - (np.arange(h) + 0.5) / h * 2.0  # 1 .. -1 top to bottom
-        xx, yy = np.meshgrid(x, y)
-        xx, yy = xx.reshape(-1, 1), yy.reshape(-1, 1)
+        jit = np.broadcast_to(np.asarray(jitter, np.float64), (h * w, 2)).reshape(h, w, 2)
+        x = (np.arange(w)[None, :] + jit[:, :, 0]) / w * 2.0 - 1.0  # -1 .. 1 left to right
+        y = 1.0 - (np.arange(h)[:, None] + jit[:, :, 1]) / h * 2.0  # 1 .. -1 top to bottom
+        xx, yy = x.reshape(-1, 1), y.reshape(-1, 1)
         eye = np.asarray(self.eye)
         if self.orthographic_height is not None:
             half_h = 0.5 * self.orthographic_height
@@ -226,10 +232,16 @@ def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
       the box's mid-height, looking at the centre, fov_y = 40 deg, far enough
       back that the whole cross-section of the box fits the frame.  If the top
       is open as well the eye is lifted 30 deg so the floor shows.
-    * Closed room: the eye is inside, near a top corner (80% of the height,
-      8% in from the two walls), looking at the diagonally opposite corner at
-      20% of the height, fov_y = 65 deg.  Of the four corners the one with the
-      clearest line of sight from the centre is used.
+    * Closed (a room, or a floor of rooms): the camera looks at lit space.  The
+      brightest floor spot (non-emitting up-facing patches in the bottom quarter,
+      by luminance of B; the 90th percentile by area among them, so a single
+      noisy patch does not decide) is found, and the room around it is measured
+      by casting rays from 40% of the height above it along +-X and +-Z to the
+      walls.  The eye stands inside that room near a top corner (80% of the
+      height, 8% in from the two walls), looking at the diagonally opposite
+      corner at 20% of the height, fov_y = 65 deg.  Of the four corners the one
+      with the clearest line of sight from the room's centre is used.  Without
+      lit floor the whole box is the room.
     """
     lo, hi = patches.bounds
     ext = np.maximum(hi - lo, 1e-9 * patches.scale)
@@ -252,19 +264,47 @@ def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
             d = d * math.cos(el) + np.array([0.0, math.sin(el), 0.0])
             dist += 0.5 * ext[1] * math.tan(el)  # step back: the box looks taller
         return Camera(c + dist * d, c, (0, 1, 0), fov, width, height)
-    inset = 0.08 * ext
+    rlo, rhi = _lit_room(patches, tracer, lo, hi)
+    rext = rhi - rlo
+    rc = 0.5 * (rlo + rhi)
+    inset = 0.08 * rext
     best_eye, best_t = None, -1.0
     for sx in (-1.0, 1.0):
         for sz in (-1.0, 1.0):
             s = np.array([sx, 0.0, sz])
-            eye = np.where(s > 0, hi - inset, lo + inset)
-            eye[1] = lo[1] + 0.8 * ext[1]
-            _, t = tracer.intersect(c[None], (eye - c)[None])
+            eye = np.where(s > 0, rhi - inset, rlo + inset)
+            eye[1] = rlo[1] + 0.8 * rext[1]
+            _, t = tracer.intersect(rc[None], (eye - rc)[None])
             if min(float(t[0]), 1.0) > best_t + 1e-9:
                 best_eye, best_t = eye, min(float(t[0]), 1.0)
-    target = lo + hi - best_eye
-    target[1] = lo[1] + 0.2 * ext[1]
+    target = rlo + rhi - best_eye
+    target[1] = rlo[1] + 0.2 * rext[1]
     return Camera(best_eye, target, (0, 1, 0), 65.0, width, height)
+
+
+def _lit_room(patches, tracer: Tracer, lo: np.ndarray, hi: np.ndarray):
+    """(lo, hi) of the room around the brightest floor spot (see auto_camera); the box if none."""
+    ext = hi - lo
+    floor = (patches.normal[:, 1] > 0.7) & (patches.centroid[:, 1] <= lo[1] + 0.25 * ext[1])
+    floor &= ~np.any(patches.emission > 0, axis=1)
+    lum = luminance(np.asarray(patches.radiosity, np.float64))
+    idx = np.flatnonzero(floor & (lum > 0))
+    if not len(idx):
+        return lo, hi
+    order = idx[np.argsort(lum[idx])]
+    cum = np.cumsum(patches.area[order])
+    spot = order[min(int(np.searchsorted(cum, 0.9 * cum[-1])), len(order) - 1)]
+    p = patches.centroid[spot].copy()
+    p[1] += 0.4 * ext[1]
+    dirs = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0]])
+    prim, t = tracer.intersect(np.repeat(p[None], 4, axis=0), dirs)
+    far = np.array([hi[0] - p[0], p[0] - lo[0], hi[2] - p[2], p[2] - lo[2]])
+    t = np.where(prim == MISS, far, np.minimum(t, far))
+    rlo, rhi = lo.copy(), hi.copy()
+    rhi[0], rlo[0], rhi[2], rlo[2] = p[0] + t[0], p[0] - t[1], p[2] + t[2], p[2] - t[3]
+    if np.any(rhi - rlo <= 1e-6 * patches.scale):
+        return lo, hi
+    return rlo, rhi
 
 
 def camera_from_dict(cam: dict, width: int = 640, height: int = 480) -> Camera:
@@ -329,6 +369,16 @@ def barycentric(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
     return bc
 
 
+def _jitter(samples: int) -> np.ndarray:
+    """(samples, 2) sub-pixel offsets: a stratified k x k pattern, jittered with a fixed seed."""
+    k = max(1, int(round(math.sqrt(max(samples, 1)))))
+    cells = (np.stack(np.meshgrid(np.arange(k), np.arange(k)), axis=-1).reshape(-1, 2) + 0.5) / k
+    if k == 1:
+        return cells
+    rng = np.random.default_rng(12345)
+    return np.clip(cells + (rng.random(cells.shape) - 0.5) / k, 0.0, 1.0 - 1e-9)
+
+
 def render(
     patches,
     camera: Camera,
@@ -336,48 +386,95 @@ def render(
     corner_values: np.ndarray | None = None,
     tracer: Tracer | None = None,
     backface_color=None,
+    samples: int = 1,
+    exposure: float | None = None,
 ) -> np.ndarray:
     """Ray-cast image of the patch table.
 
     mask          : (n,) bool, patches to draw (default all)
-    corner_values : (n, 3, 3) radiosity per corner for the *whole* table
-                    (default :func:`corner_radiosity`); interpolated
+    corner_values : (n, 3, C) values per corner for the *whole* table (default
+                    :func:`corner_radiosity`, C = 3); interpolated
                     barycentrically over each hit triangle
     tracer        : a Tracer built on ``patches.triangles[mask]`` in that order
                     (reuse it across views); built here when None
-    backface_color: RGB for pixels that see a patch from behind (flipped
-                    normals).  None: ``BACKFACE_COLOR`` times the 99th
-                    percentile of the front-face luminance (1 if none), so
-                    the flag survives :func:`tonemap`.
+    backface_color: RGB for pixels that see a one-sided patch from behind
+                    (flipped normals, the outside of a room).  None:
+                    ``BACKFACE_COLOR`` times the reference radiance: 0.9 / ``exposure``
+                    if given, else the 99th percentile of the front-face
+                    luminance (1 if none), so it shows as the same grey after
+                    :func:`tonemap`.  A two-sided patch seen from behind shows its
+                    back side (``Patches.twin``).
+    samples       : rays per pixel (1: the centre; 4: a jittered 2 x 2 pattern), averaged
 
-    returns (H, W, 3) float32 radiance B / pi; misses are 0.
+    returns (H, W, C) float32 radiance B / pi (values / pi); misses are 0.
     """
     n = len(patches)
     idx = np.arange(n) if mask is None else np.flatnonzero(np.asarray(mask, bool).reshape(n))
     if corner_values is None:
         corner_values = corner_radiosity(patches)
-    corner_values = np.asarray(corner_values, np.float64).reshape(n, 3, 3)
+    corner_values = np.asarray(corner_values, np.float64).reshape(n, 3, -1)
+    nch = corner_values.shape[2]
     if tracer is None:
         tracer = Tracer(patches.triangles[idx])
     elif tracer.n != len(idx):
         raise ValueError(f"tracer holds {tracer.n} triangles but the mask selects {len(idx)}")
-    origins, dirs = camera.rays()
-    prim, t = tracer.intersect(origins, dirs)
-    img = np.zeros((len(prim), 3))
-    hit = np.flatnonzero(prim != MISS)
-    p = idx[prim[hit]]
-    point = origins[hit] + t[hit, None] * dirs[hit]
-    bc = barycentric(patches.triangles[p], point)
-    img[hit] = np.einsum("ik,ikc->ic", bc, corner_values[p]) / math.pi
-    back = np.einsum("ij,ij->i", dirs[hit], patches.normal[p]) > 0
+    twin = getattr(patches, "twin", None)
+    total = np.zeros((camera.height * camera.width, nch))
+    backs, fronts = [], []
+    for jit in _jitter(samples):
+        origins, dirs = camera.rays(jit)
+        prim, t = tracer.intersect(origins, dirs)
+        img = np.zeros((len(prim), nch))
+        hit = np.flatnonzero(prim != MISS)
+        p = idx[prim[hit]]
+        back = np.einsum("ij,ij->i", dirs[hit], patches.normal[p]) > 0
+        if twin is not None:
+            other = twin[p]
+            seen = back & (other >= 0)
+            p = np.where(seen, other, p)  # a two-sided patch from behind: its back side
+            back &= ~seen
+        point = origins[hit] + t[hit, None] * dirs[hit]
+        bc = barycentric(patches.triangles[p], point)
+        img[hit] = np.einsum("ik,ikc->ic", bc, corner_values[p]) / math.pi
+        img[hit[back]] = 0.0  # shown as the flag colour below
+        fronts.append(img[hit[~back]])
+        total += img
+        seen_back = np.zeros(len(prim), bool)
+        seen_back[hit[back]] = True
+        backs.append(seen_back)
     if backface_color is None:
-        front = luminance(img[hit[~back]])
-        ref = float(np.percentile(front, 99.0)) if front.size else 0.0
-        flag = np.asarray(BACKFACE_COLOR) * (ref if ref > 0 else 1.0)
+        if exposure is not None and exposure > 0:
+            ref = 0.9 / exposure
+        else:
+            front = luminance(np.concatenate(fronts)) if nch == 3 else np.zeros(0)
+            ref = float(np.percentile(front, 99.0)) if front.size else 0.0
+        flag = np.resize(np.asarray(BACKFACE_COLOR), nch) * (ref if ref > 0 else 1.0)
     else:
-        flag = np.asarray(backface_color, np.float64).reshape(3)
-    img[hit[back]] = flag
-    return img.reshape(camera.height, camera.width, 3).astype(np.float32)
+        flag = np.resize(np.asarray(backface_color, np.float64), nch)
+    for seen_back in backs:
+        total[seen_back] += flag  # the flag colour stands in for the sample's (zero) value
+    img = total / len(backs)
+    return img.reshape(camera.height, camera.width, nch).astype(np.float32)
+
+
+def scene_exposure(patches, percentile: float = 99.0, white: float = 0.9) -> float:
+    """One exposure for every view and mesh: from the lit surfaces, not the lamps.
+
+    The ``percentile`` of the luminance of B / pi over the *area* of the patches that
+    do not emit maps to ``white``; emitters are left out (they would darken everything
+    when in frame).  1 when nothing is lit.
+    """
+    lamp = np.any(patches.emission > 0, axis=1)
+    lum = luminance(np.asarray(patches.radiosity, np.float64)[~lamp]) / math.pi
+    area = patches.area[~lamp]
+    ok = lum > 0
+    if not ok.any():
+        return 1.0
+    lum, area = lum[ok], area[ok]
+    order = np.argsort(lum)
+    cum = np.cumsum(area[order])
+    ref = float(lum[order][min(np.searchsorted(cum, percentile / 100.0 * cum[-1]), len(cum) - 1)])
+    return white / ref if ref > 0 else 1.0
 
 
 def _srgb_oetf(x: np.ndarray) -> np.ndarray:

@@ -21,7 +21,17 @@ Formats
     a material gets the default 0.5 and a warning.  The first perspective
     camera (depth-first over the scene's nodes) gives ``Scene.camera``.
 
-Coordinates are metres, Y up (glTF's convention; OBJ is taken as is).
+Coordinates are metres.  Internally Y is up: a scene whose up axis is another
+(``up`` given, or detected by :func:`detect_up`) is rotated at load by an exact
+signed permutation (``Scene.rotation``, input -> internal), and written back
+in its own frame by the mesh writers.
+
+Two-sided surfaces (``two_sided=True`` for all, MTL ``two_sided 1`` or glTF
+``doubleSided`` per material) get a second patch per triangle for the back
+side (:attr:`Patches.twin`).  Textures: the reflectance of a material with
+``map_Kd`` / ``baseColorTexture`` is its factor (``Kd``, 1 when absent;
+``baseColorFactor``) times the linear texture's mean over each triangle's UV
+triangle (:mod:`dcrad.texture`).
 """
 
 from __future__ import annotations
@@ -35,12 +45,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+import tempfile
+
 from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
 from .objfile import inside_folder, parse_obj, read_mtl
-from .patches import Patches, subdivide, triangle_areas
+from .patches import Patches, subdivide, triangle_areas, triangle_normals
+from .texture import read_texture, uv_means
 
-__all__ = ["Scene", "load_scene", "DEFAULT_RHO"]
+__all__ = ["Scene", "load_scene", "DEFAULT_RHO", "UP_AXES", "detect_up"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +61,17 @@ log = logging.getLogger(__name__)
 DEFAULT_RHO = 0.5
 #: most object names listed in one warning
 _LIST = 8
+#: highest reflectance a texture may give (a white texel is 1.0, which no real surface reflects)
+RHO_MAX_TEXTURE = 0.99
+#: up axis -> rotation (input -> internal, Y up): exact signed permutations, det +1
+UP_AXES = {
+    "y": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "-y": ((1, 0, 0), (0, -1, 0), (0, 0, -1)),
+    "z": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "-z": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),
+    "x": ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
+    "-x": ((0, 1, 0), (-1, 0, 0), (0, 0, 1)),
+}
 
 
 @dataclass
@@ -63,7 +87,12 @@ class Scene:
     names: list  # "object/material" labels
     valid: np.ndarray  # (T,) bool, False for dropped degenerate triangles
     warnings: list = field(default_factory=list)
-    camera: dict | None = None  # {"eye", "target", "up": [x,y,z], "fov_y": degrees}
+    camera: dict | None = None  # {"eye", "target", "up": [x,y,z], "fov_y": degrees}, internal frame
+    up: str = "y"  # the input's up axis (a key of UP_AXES)
+    up_source: str = "default"  # "given" (--up), "detected: ..." or "default"
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))  # input -> internal frame
+    two_sided: np.ndarray | None = None  # (T,) bool, None: all one-sided
+    textured: list = field(default_factory=list)  # material labels whose reflectance came from a texture
 
     def __len__(self) -> int:
         return len(self.faces)
@@ -84,10 +113,27 @@ class Scene:
         except ValueError as exc:  # subdivide_to_size gives up after max_iter
             raise ConfigError(f"cannot mesh {self.path} with max_edge={max_edge}: {exc}") from None
         src = keep[idx]
+        emission = self.emission[src]
+        twin = None
+        if self.two_sided is not None and self.two_sided[src].any():
+            # back sides: the same triangles reversed, after every front patch; they reflect
+            # like the front (same rho) and emit nothing (Ke / emissive is the front's)
+            back = np.flatnonzero(self.two_sided[src])
+            n = len(f)
+            twin = np.full(n + len(back), -1, np.int64)
+            twin[back], twin[n:] = n + np.arange(len(back)), back
+            f = np.concatenate([f, f[back][:, [0, 2, 1]]])
+            src = np.concatenate([src, src[back]])
+            emission = np.concatenate([emission, np.zeros((len(back), 3))])
         return Patches(
-            vertices=v, faces=f, rho=self.rho[src], emission=self.emission[src],
-            source=src, obj=self.obj[src], names=list(self.names),
+            vertices=v, faces=f, rho=self.rho[src], emission=emission,
+            source=src, obj=self.obj[src], names=list(self.names), twin=twin,
         )
+
+    def to_input_frame(self, points: np.ndarray) -> np.ndarray:
+        """Internal (Y-up) points or vectors (..., 3) -> the input file's frame."""
+        return np.asarray(points, np.float64) @ self.rotation
+
 
 
 # -- helpers -------------------------------------------------------------------------------
@@ -149,6 +195,8 @@ def _load_obj(path: str, warnings: list):
     ng = len(data.groups)
     rho, em = np.full((ng, 3), DEFAULT_RHO), np.zeros((ng, 3))
     names, no_mtl, unknown = [], [], []
+    sided = np.zeros(ng, bool)
+    maps: dict[int, tuple] = {}  # group -> (material, texture path as written, full path)
     for g, (obj, mname) in enumerate(data.groups):
         names.append(f"{obj}/{mname if mname is not None else '(default)'}")
         m = materials.get(mname) if mname is not None else None
@@ -159,14 +207,22 @@ def _load_obj(path: str, warnings: list):
             unknown.append(mname)
             continue
         where = f"material '{m.name}' in {m.file}"
+        kd_map = [name for k, name in m.textures if k.lower() == "map_kd"]
         if m.kd is None:
-            warnings.append(f"{where} has no Kd; using reflectance {DEFAULT_RHO}")
+            if kd_map:
+                rho[g] = 1.0  # the factor of map_Kd when Kd is absent
+            else:
+                warnings.append(f"{where} has no Kd; using reflectance {DEFAULT_RHO}")
         else:
             rho[g] = _check_rho(m.kd, where, m.kd_text)
         if m.ke is not None:
             em[g] = _check_emission(m.ke, where, m.ke_text)
-        if m.textures:
-            warnings.append(f"{where}: textures ignored ({', '.join(k for k, _ in m.textures)}); using Kd")
+        sided[g] = m.two_sided
+        if kd_map:
+            maps[g] = (m, kd_map[-1], inside_folder(folder, kd_map[-1], where, "texture map_Kd"))
+        others = [k for k, _ in m.textures if k.lower() != "map_kd"]
+        if others:
+            warnings.append(f"{where}: maps ignored ({', '.join(others)}); only map_Kd is used")
     if no_mtl:
         warnings.append(
             f"{path}: faces before any usemtl in {_listing(no_mtl)} use the default reflectance {DEFAULT_RHO}"
@@ -179,7 +235,39 @@ def _load_obj(path: str, warnings: list):
     label_ix = {n: i for i, n in enumerate(dict.fromkeys(names))}
     gmap = np.array([label_ix[n] for n in names], np.int32)
     g = data.group
-    return data.vertices, data.faces, rho[g], em[g], gmap[g], list(label_ix), None
+    rho_t, textured, images = rho[g], [], {}
+    for k, (m, written, full) in maps.items():
+        rows = np.flatnonzero(g == k)
+        where = f"material '{m.name}' in {m.file}"
+        image = _texture(images, full, written, where, "Kd", warnings)
+        if image is None or not len(rows):
+            continue
+        uv = data.uv[rows] if data.uv is not None else np.full((len(rows), 3, 2), np.nan)
+        rho_t[rows] = _textured_rho(rho[k], image, uv, where, written, warnings)
+        textured.append(names[k])
+    extras = {"two_sided": sided[g], "textured": list(dict.fromkeys(textured))}
+    return data.vertices, data.faces, rho_t, em[g], gmap[g], list(label_ix), None, extras
+
+
+def _texture(cache: dict, full: str, written: str, where: str, factor: str, warnings: list):
+    """The linear image of a texture file (cached), or None with a warning naming it."""
+    if full not in cache:
+        try:
+            cache[full] = read_texture(full)
+        except OSError as exc:
+            warnings.append(f"{where}: texture '{written}' not usable ({exc}); using the {factor} factor alone")
+            cache[full] = None
+    return cache[full]
+
+
+def _textured_rho(factor, image, uv, where: str, written: str, warnings: list) -> np.ndarray:
+    """factor (3,) x the texture's mean over each UV triangle (T, 3, 2) -> (T, 3), capped below 1."""
+    rho = np.asarray(factor, np.float64)[None, :] * uv_means(image, uv)
+    if (rho > RHO_MAX_TEXTURE).any():
+        warnings.append(f"{where}: texture '{written}' gives reflectance above {RHO_MAX_TEXTURE} "
+                        f"(max {rho.max():.3f}); capped at {RHO_MAX_TEXTURE}")
+        rho = np.minimum(rho, RHO_MAX_TEXTURE)
+    return rho
 
 
 # -- glTF ----------------------------------------------------------------------------------
@@ -324,11 +412,80 @@ def _gltf_material(header: dict, table: list, mat, path: str, warnings: list):
     return label, rho, em
 
 
+def _gltf_image(path: str, header: dict, material: dict, where: str, cache: dict, warnings: list):
+    """The linear base-colour texture of a glTF material (OpenImageIO), None if it has none.
+
+    Images are files next to the scene, data: URIs or buffer views (GLB); the
+    latter two are written to a temporary file for OpenImageIO.  An unusable image
+    gives a warning naming it, and None.
+    """
+    ref = material.get("pbrMetallicRoughness", {}).get("baseColorTexture")
+    if not isinstance(ref, dict):
+        return None
+    try:
+        src = header["textures"][int(ref["index"])]["source"]
+        image = header["images"][int(src)]
+    except (KeyError, IndexError, TypeError, ValueError):
+        warnings.append(f"{where}: baseColorTexture does not name an image; using the baseColorFactor alone")
+        return None
+    name = image.get("uri") or image.get("name") or f"image {src}"
+    name = "embedded data" if name.startswith("data:") else name
+    if name in cache:
+        return cache[name]
+    folder = os.path.dirname(os.path.abspath(path))
+    uri = image.get("uri")
+    if isinstance(uri, str) and not uri.startswith("data:"):
+        cache[name] = _texture({}, inside_folder(folder, uri, path, f"image {src}"), uri, where,
+                               "baseColorFactor", warnings)
+        return cache[name]
+    try:
+        blob = _gltf_blob(path, header, uri, image)
+    except (KeyError, IndexError, TypeError, ValueError, OSError) as exc:
+        warnings.append(f"{where}: texture '{name}' not readable ({exc}); using the baseColorFactor alone")
+        cache[name] = None
+        return None
+    suffix = ".jpg" if image.get("mimeType", "").endswith("jpeg") or blob[:2] == b"\xff\xd8" else ".png"
+    with tempfile.TemporaryDirectory(prefix="dcrad-tex-") as tmp:
+        tmp_path = os.path.join(tmp, "texture" + suffix)
+        with open(tmp_path, "wb") as fh:
+            fh.write(blob)
+        img = _texture({}, tmp_path, name, where, "baseColorFactor", warnings)
+    cache[name] = img
+    return img
+
+
+def _gltf_blob(path: str, header: dict, uri, image: dict) -> bytes:
+    """Bytes of an embedded glTF image: a data: URI or a buffer view."""
+    import base64
+
+    if isinstance(uri, str):
+        return base64.b64decode(uri.split(",", 1)[1])
+    view = header["bufferViews"][int(image["bufferView"])]
+    buf = header["buffers"][int(view.get("buffer", 0))]
+    if "uri" in buf:
+        buri = buf["uri"]
+        data = (base64.b64decode(buri.split(",", 1)[1]) if buri.startswith("data:") else
+                open(inside_folder(os.path.dirname(os.path.abspath(path)), buri, path, "buffer"), "rb").read())
+    else:  # the GLB binary chunk
+        with open(path, "rb") as fh:
+            glb = fh.read()
+        jlen = struct.unpack_from("<I", glb, 12)[0]
+        blen = struct.unpack_from("<I", glb, 20 + jlen)[0]
+        data = glb[28 + jlen: 28 + jlen + blen]
+    off = int(view.get("byteOffset", 0))
+    return data[off: off + int(view["byteLength"])]
+
+
 def _load_gltf(path: str, warnings: list, scale: float):
     import trimesh
 
     header = _gltf_json(path)
     table = _gltf_materials(header, path, warnings)
+    by_label = {}
+    for i, m in enumerate(header.get("materials", [])):
+        by_label.setdefault(m.get("name") or f"material{i}", m)
+    images: dict = {}
+    sides, textured = [], []
     try:
         scene = trimesh.load(path, force="scene")
     except Exception as exc:  # trimesh raises many kinds
@@ -355,6 +512,19 @@ def _load_gltf(path: str, warnings: list, scale: float):
         if np.linalg.det(matrix[:3, :3]) < 0:
             f = f[:, [0, 2, 1]]
         k = labels.setdefault(f"{obj}/{mname}", len(labels))
+        gm = by_label.get(mname, {})
+        sides.append(np.full(len(f), bool(gm.get("doubleSided", False))))
+        where = f"material '{mname}' in {path}"
+        image = _gltf_image(path, header, gm, where, images, warnings) if gm else None
+        uv = getattr(geom.visual, "uv", None)
+        if image is not None:
+            uv = np.asarray(uv, np.float64)[f] if uv is not None and len(uv) == len(v) else None
+            if uv is None:
+                warnings.append(f"{where}: textured, but object '{obj}' has no texture coordinates; "
+                                f"using the texture's mean")
+                uv = np.full((len(f), 3, 2), np.nan)
+            rho = _textured_rho(rho, image, uv, where, "baseColorTexture", warnings)
+            textured.append(mname)
         vs.append(v)
         fs.append(f + nv)
         nv += len(v)
@@ -367,21 +537,93 @@ def _load_gltf(path: str, warnings: list, scale: float):
         warnings.append(f"{path}: camera not usable ({type(exc).__name__}: {exc}); ignored")
         camera = None
     cat = lambda a, shape, dt: np.concatenate(a).astype(dt) if a else np.zeros(shape, dt)  # noqa: E731
+    extras = {"two_sided": cat(sides, (0,), bool), "textured": list(dict.fromkeys(textured))}
     return (
         cat(vs, (0, 3), np.float64), cat(fs, (0, 3), np.int64), cat(rhos, (0, 3), np.float64),
         cat(ems, (0, 3), np.float64), cat(objs, (0,), np.int32), list(labels),
-        camera,
+        camera, extras,
     )
 
 
+# -- up axis -------------------------------------------------------------------------------
+def detect_up(vertices: np.ndarray, faces: np.ndarray, emission: np.ndarray | None = None) -> tuple[str, str]:
+    """The up axis of a model (a key of UP_AXES) and how it was found.
+
+    Lamps hang on ceilings and face down: when at least half the emitted power leaves
+    surfaces facing along one axis (|n| > 0.9), that is the axis, and the sign is the
+    one they face away from when at least half faces one way.  Otherwise the axis is
+    the one with the most area facing along it both ways (floors and ceilings: the
+    lesser way at least 10% of the other), Y when its area is within 10% of the best
+    (dcrad's own convention) or when no axis qualifies, and the sign, which normals
+    alone cannot give (a closed room upside down is the same room), comes from where
+    the geometry off the outer floor/ceiling slabs sits (furniture stands on floors:
+    its area-weighted mean height is below the middle); + when nothing tells.
+    """
+    tri = vertices[faces]
+    n, area = triangle_normals(tri), triangle_areas(tri)
+    c = tri.mean(axis=1)
+    if emission is not None and (emission > 0).any():
+        lamp = emission.sum(axis=1) * area
+        along = [float(lamp[np.abs(n[:, k]) > 0.9].sum()) for k in range(3)]
+        axis = int(np.argmax(along))
+        if along[axis] >= 0.5 * float(lamp.sum()):
+            name = "xyz"[axis]
+            down, up = float(lamp[n[:, axis] < -0.9].sum()), float(lamp[n[:, axis] > 0.9].sum())
+            why = f"emitters face along {name} ({100 * along[axis] / lamp.sum():.0f}% of the emitted power)"
+            if max(down, up) >= 0.5 * float(lamp.sum()):
+                sign = "" if down > up else "-"
+                return sign + name, why + f", facing {'-' if down > up else '+'}{name}: lamps face down"
+            return _up_sign(name, axis, c, area, why + ", both ways")
+    pos = np.array([float(area[n[:, k] > 0.9].sum()) for k in range(3)])
+    neg = np.array([float(area[n[:, k] < -0.9].sum()) for k in range(3)])
+    # floors need ceilings (or the other way round): a lone plane tells nothing
+    flat = np.where(np.minimum(pos, neg) >= 0.1 * np.maximum(pos, neg), pos + neg, 0.0)
+    if flat.max() <= 0:
+        return "y", "default (no floors facing ceilings, no emitters facing along an axis)"
+    best = int(np.argmax(flat))
+    axis = 1 if flat[1] >= 0.9 * flat[best] else best
+    name = "xyz"[axis]
+    return _up_sign(name, axis, c, area, f"floor and ceiling area along {name}: {flat[axis]:.3g} m^2 "
+                                         f"of {sum(flat):.3g} m^2 facing an axis")
+
+
+def _up_sign(name: str, axis: int, c: np.ndarray, area: np.ndarray, why: str) -> tuple[str, str]:
+    lo, hi = c[:, axis].min(), c[:, axis].max()
+    h = (c[:, axis] - lo) / max(hi - lo, 1e-300)
+    inner = (h > 0.02) & (h < 0.98)
+    if area[inner].sum() > 0:
+        mean = float((h[inner] * area[inner]).sum() / area[inner].sum())
+        if abs(mean - 0.5) > 0.01:
+            sign = "" if mean < 0.5 else "-"
+            return sign + name, why + f"; geometry sits low along {sign or '+'}{name} (mean height " \
+                                      f"{min(mean, 1 - mean):.2f})"
+    return name, why + f"; sign +{name} (nothing tells)"
+
+
+def _rotate_camera(camera: dict | None, rotation: np.ndarray) -> dict | None:
+    if camera is None:
+        return None
+    out = dict(camera)
+    for k in ("eye", "target", "up"):
+        if k in out:
+            out[k] = [float(x) for x in rotation @ np.asarray(out[k], np.float64)]
+    return out
+
+
 # -- entry point ---------------------------------------------------------------------------
-def load_scene(path, scale: float = 1.0) -> Scene:
+def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool = False) -> Scene:
     """Load ``path`` (.obj, .gltf, .glb); ``scale`` multiplies every coordinate.
+
+    ``up``: the input's up axis (x, y, z, -x, -y, -z); None or "auto" detects it
+    (:func:`detect_up`).  ``two_sided``: every surface receives and reflects on both
+    sides (else only materials that ask for it).
 
     Raises :class:`~dcrad.errors.SceneFormatError` (unreadable / malformed /
     unsupported), :class:`~dcrad.errors.SceneValueError` (bad values, empty
-    scene) or :class:`~dcrad.errors.ConfigError` (bad ``scale``).
+    scene) or :class:`~dcrad.errors.ConfigError` (bad ``scale`` or ``up``).
     """
+    if up is not None and str(up).strip().lower() not in (*UP_AXES, "+x", "+y", "+z", "auto", ""):
+        raise ConfigError(f"invalid up axis {up!r}: use x, y, z, -x, -y, -z or auto")
     try:
         scale = float(scale)
     except (TypeError, ValueError):
@@ -396,7 +638,7 @@ def load_scene(path, scale: float = 1.0) -> Scene:
         raise SceneFormatError(f"cannot read scene file {path}: no such file")
     warnings: list[str] = []
     loader = _load_obj(path, warnings) if ext == ".obj" else _load_gltf(path, warnings, scale)
-    vertices, faces, rho, emission, obj, names, camera = loader
+    vertices, faces, rho, emission, obj, names, camera, extras = loader
     vertices = np.ascontiguousarray(vertices * scale, np.float64)
     if len(faces) == 0:
         raise SceneValueError(f"{path}: the scene has no faces")
@@ -418,6 +660,19 @@ def load_scene(path, scale: float = 1.0) -> Scene:
         )
     if not (emission[valid] > 0).any():
         warnings.append("no emitters: the solution is zero")
+    want = str(up).strip().lower().lstrip("+") if up is not None else "auto"
+    if want in ("auto", "") and ext != ".obj":
+        want, source = "y", "glTF convention (Y up)"
+    elif want in ("auto", ""):
+        want, source = detect_up(vertices, faces[valid], emission[valid])
+        source = "detected: " + source
+    else:
+        source = "given"
+    rotation = np.array(UP_AXES[want], np.float64)
+    if want != "y":
+        vertices = vertices @ rotation.T  # exact: a signed permutation
+        camera = _rotate_camera(camera, rotation)
+    sided = np.asarray(extras["two_sided"], bool) | bool(two_sided)
     warnings = list(dict.fromkeys(warnings))  # one line per distinct warning
     for w in warnings:
         log.info("%s", w)
@@ -425,5 +680,6 @@ def load_scene(path, scale: float = 1.0) -> Scene:
         path=path, vertices=vertices, faces=np.ascontiguousarray(faces, np.int64),
         rho=np.ascontiguousarray(rho, np.float64), emission=np.ascontiguousarray(emission, np.float64),
         obj=np.ascontiguousarray(obj, np.int32), names=names, valid=valid,
-        warnings=warnings, camera=camera,
+        warnings=warnings, camera=camera, up=want, up_source=source, rotation=rotation,
+        two_sided=sided if sided.any() else None, textured=list(extras["textured"]),
     )

@@ -17,6 +17,7 @@ from dcrad.export import (
 )
 from dcrad.patches import Patches
 from dcrad.render import (
+    BACKFACE_COLOR,
     Camera,
     auto_camera,
     barycentric,
@@ -176,8 +177,9 @@ def test_render_backface_flag_and_mask():
     hit = img.any(axis=2)
     assert hit.any()
     assert np.allclose(img[hit], [0.05, 0.0, 0.05])
-    auto = render(sq, cam)  # relative flag: still magenta, never green
-    assert np.all(auto[hit][:, 1] == 0) and np.all(auto[hit][:, 0] > 0)
+    auto = render(sq, cam)  # relative flag: a neutral grey, BACKFACE_COLOR of the reference
+    assert np.all(auto[hit] > 0) and np.allclose(auto[hit], auto[hit][:, :1])
+    assert np.allclose(render(sq, cam, exposure=0.9 / 2.0)[hit], np.multiply(BACKFACE_COLOR, 2.0))
     none = render(sq, cam, mask=np.zeros(2, bool))
     assert np.all(none == 0)
 

@@ -391,3 +391,79 @@ def test_office_determinism(tmp_path):
     assert a.with_suffix(".mtl").read_bytes() == b.with_suffix(".mtl").read_bytes()
     assert a.read_bytes() != c.read_bytes()
     assert cornell_box(tmp_path / "d").read_bytes() == cornell_box(tmp_path / "e").read_bytes()
+
+
+# -- real-scene variants: Z-up, mixed winding, two-sided (issue 15) ---------------------------
+def test_z_up_copy_solves_to_the_same_radiosity_and_floor_plan(tmp_path):
+    """A Z-up copy (exact rotation) is detected, rotated back at load, and gives the Y-up
+    solution bit for bit; the office copy still gets its top-down floor plan."""
+    from dcrad.config import SolverConfig
+    from dcrad.pipeline import solve_to
+    from scenes.variants import variant
+
+    src = scenes.write_builtin("office", tmp_path / "y", rows=1, cols=2, seed=1)
+    z = variant(src, tmp_path / "z", up="z")
+    cfg = SolverConfig(tol=0.05, seed=3)
+    ry = solve_to(src, tmp_path / "oy", cfg)
+    rz = solve_to(z, tmp_path / "oz", cfg)
+    assert rz["settings"]["up"] == "z" and ry["settings"]["up"] == "y"
+    assert rz["settings"]["up_source"].startswith("detected")
+    by = np.load(tmp_path / "oy" / "radiosity.npz")["B"]
+    bz = np.load(tmp_path / "oz" / "radiosity.npz")["B"]
+    np.testing.assert_array_equal(by, bz)
+    assert "preview_top_png" in rz["outputs"] and "preview_top_png" in ry["outputs"]
+    # meshes are written back in the input's (Z-up) frame
+    import trimesh
+
+    ply = trimesh.load(tmp_path / "oz" / "patches.ply", process=False)
+    vz = np.array([[float(t) for t in ln.split()[1:4]] for ln in z.read_text().splitlines() if ln.startswith("v ")])
+    assert np.allclose(ply.bounds, [vz.min(axis=0), vz.max(axis=0)], atol=1e-5)
+
+
+def test_up_override_and_bad_up(tmp_path):
+    from dcrad.errors import ConfigError
+    from dcrad.scene import load_scene
+    from scenes.variants import variant
+
+    src = scenes.write_builtin("cornell", tmp_path)
+    z = variant(src, tmp_path / "z", up="-x")
+    assert load_scene(z).up == "-x"
+    assert load_scene(z, up="y").up == "y" and load_scene(z, up="y").up_source == "given"
+    with pytest.raises(ConfigError, match="up axis"):
+        load_scene(z, up="w")
+
+
+@pytest.mark.parametrize("rho", [0.5, 0.8])
+def test_two_sided_mixed_winding_furnace_identity(tmp_path, rho):
+    """Closed cube, uniform rho, 40% of the wall triangles wound the wrong way, two-sided:
+    the light inside lands on whichever side faces in; the mean reflected radiosity over
+    the inward sides meets rho Phi / ((1 - rho) A) and the ledger closes (no back faces)."""
+    from dcrad.config import SolverConfig
+    from dcrad.solve import Solver
+    from dcrad.scene import load_scene
+    from scenes.variants import variant
+
+    src = scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)
+    mixed = variant(src, tmp_path / "m", up="y", flip=0.4, seed=2)
+    one = load_scene(mixed)
+    p1 = one.patches(0.2)
+    s1 = Solver(p1, SolverConfig(tol=0.02, seed=5))
+    s1.run()
+    assert s1.ledger.back_faces.sum() > 0.2 * s1.ledger.emitted.sum()  # one-sided: light lost
+    assert s1.warnings() and "flipped" in s1.warnings()[0]
+
+    scene = load_scene(mixed, two_sided=True)
+    p = scene.patches(0.2)
+    assert p.is_back.sum() == len(p) // 2
+    s = Solver(p, SolverConfig(tol=2e-3, seed=5))
+    s.run()
+    assert s.ledger.closure() < 1e-10
+    assert s.ledger.back_faces.sum() == 0.0 and s.ledger.escaped.sum() == 0.0
+    assert s.warnings() == []
+    inward = p.normal @ np.array([0.5, 0.5, 0.5]) - np.einsum("ij,ij->i", p.normal, p.centroid) > 0
+    exp = furnace_expected(rho, 1.0, 3.0, 0.2)["mean_b_minus_e"]
+    a = p.area[inward]
+    mean = ((p.radiosity - p.emission)[inward] * a[:, None]).sum(axis=0) / a.sum()
+    assert np.all(np.abs(mean - exp) <= 0.01 * exp), (mean, exp)
+    assert abs(a.sum() - 6.0) < 1e-9  # one inward side per triangle
+    assert np.all(p.radiosity[~inward] == 0)  # the outside sees nothing
