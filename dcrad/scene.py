@@ -137,11 +137,13 @@ class Scene:
 
 
 # -- helpers -------------------------------------------------------------------------------
-def _check_rho(values, where: str, text: str) -> np.ndarray:
+def _check_rho(values, where: str, text: str, factor: bool = False) -> np.ndarray:
+    """A reflectance in [0, 1), or with ``factor`` (it multiplies a texture) in [0, 1]."""
     rho = np.asarray(values, np.float64)[:3]
     problem = (
         "a non-finite channel" if not np.isfinite(rho).all()
-        else "a channel >= 1" if (rho >= 1).any()
+        else "a channel > 1" if factor and (rho > 1).any()
+        else "a channel >= 1" if not factor and (rho >= 1).any()
         else "a negative channel" if (rho < 0).any() else None
     )
     if problem:
@@ -214,7 +216,7 @@ def _load_obj(path: str, warnings: list):
             else:
                 warnings.append(f"{where} has no Kd; using reflectance {DEFAULT_RHO}")
         else:
-            rho[g] = _check_rho(m.kd, where, m.kd_text)
+            rho[g] = _check_rho(m.kd, where, m.kd_text, factor=bool(kd_map))
         if m.ke is not None:
             em[g] = _check_emission(m.ke, where, m.ke_text)
         sided[g] = m.two_sided
@@ -367,11 +369,14 @@ def _gltf_materials(header: dict, path: str, warnings: list) -> list:
                 raise ValueError("expected 3 channels")
         except (TypeError, ValueError, AttributeError) as exc:
             raise SceneFormatError(f"{where}: cannot read its factors ({exc})") from None
-        if base is None:
+        textured = isinstance(m.get("pbrMetallicRoughness", {}).get("baseColorTexture"), dict)
+        if base is None and textured:
+            rho = np.ones(3)  # glTF's default factor, times the texture
+        elif base is None:
             warnings.append(f"{where} has no baseColorFactor; using reflectance {DEFAULT_RHO}")
             rho = np.full(3, DEFAULT_RHO)
         else:
-            rho = _check_rho(base, where, f"baseColorFactor {_fmt(base)}")
+            rho = _check_rho(base, where, f"baseColorFactor {_fmt(base)}", factor=textured)
         if not (math.isfinite(strength) and strength >= 0):
             raise SceneValueError(f"{where}: emissiveStrength {strength!r} must be finite and >= 0")
         em = _check_emission(

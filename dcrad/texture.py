@@ -7,8 +7,8 @@ images are taken as sRGB-encoded (the glTF rule for base colour, and what
 OBJ/MTL exporters write) and linearised, float images (EXR, HDR) as linear.
 Texels are looked up nearest-neighbour with wrap-around (repeat), so the mean
 is the integral of the piecewise-constant image, estimated on a stratified
-lattice of points over each UV triangle with about 64 points per covered texel
-(at least 64, at most 4096 per triangle).  UV origin is the lower-left corner
+lattice of points over each UV triangle with about 256 points per covered texel
+(at least 16, at most 4096 per triangle).  UV origin is the lower-left corner
 of the image (OBJ; trimesh flips glTF's upper-left origin to the same).
 """
 
@@ -21,7 +21,7 @@ from .sampling import lattice, triangle_points
 __all__ = ["read_texture", "srgb_to_linear", "uv_means"]
 
 #: lattice points per covered texel, and the bounds per triangle
-_PER_TEXEL, _MIN_POINTS, _MAX_POINTS = 64, 64, 4096
+_PER_TEXEL, _MIN_POINTS, _MAX_POINTS = 256, 16, 4096
 #: points processed at once (memory)
 _CHUNK = 1 << 21
 

@@ -421,3 +421,108 @@ def test_gltf_bad_files(tmp_path):
     (tmp_path / "e.gltf").write_text(json.dumps(empty))
     with pytest.raises(SceneValueError, match="no faces"):
         load_scene(tmp_path / "e.gltf")
+
+
+# -- textures (issue 15) ----------------------------------------------------------------------
+def _png(path, rgb_bytes):
+    """Write a tiny RGB PNG (uint8 sRGB values, shape (h, w, 3)) with OpenImageIO."""
+    import OpenImageIO as oiio
+
+    px = np.asarray(rgb_bytes, np.uint8)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(px.shape[1], px.shape[0], 3, oiio.UINT8))
+    assert out.write_image(px)
+    out.close()
+
+
+def _linear(byte):
+    x = np.asarray(byte, np.float64) / 255.0
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+TEX = [[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [128, 128, 128]]]  # 2x2: red green / blue grey
+QUAD_UV = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+           "usemtl tex\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+
+
+def test_obj_map_kd_gives_the_texture_mean_times_kd(tmp_path):
+    _png(tmp_path / "t.png", TEX)
+    mtl = "newmtl tex\nKd 0.8 0.5 1.0\nmap_Kd t.png\n"
+    s = load_scene(write(tmp_path, QUAD_UV, mtl))
+    mean = _linear(TEX).reshape(-1, 3).mean(axis=0)
+    area_mean = (s.rho * triangle_areas(s.vertices[s.faces])[:, None]).sum(axis=0) / 1.0
+    np.testing.assert_allclose(area_mean, np.array([0.8, 0.5, 1.0]) * mean, atol=0.01)
+    assert s.textured == ["default/tex"]
+    # per triangle: the texture varies over UV, so the two halves of the quad differ
+    assert not np.allclose(s.rho[0], s.rho[1], atol=0.02)
+    # a uniform texture gives exactly its value
+    _png(tmp_path / "t.png", [[[200, 100, 50]] * 2] * 2)
+    s = load_scene(write(tmp_path, QUAD_UV, mtl))
+    np.testing.assert_allclose(s.rho, np.broadcast_to([0.8, 0.5, 1.0] * _linear([200, 100, 50]), (2, 3)),
+                               rtol=1e-6)
+
+
+def test_missing_texture_warns_naming_the_file_and_uses_the_factor(tmp_path):
+    mtl = "newmtl tex\nKd 0.3 0.4 0.5\nmap_Kd nothere.png\n"
+    s = load_scene(write(tmp_path, QUAD_UV, mtl))
+    assert np.allclose(s.rho, [0.3, 0.4, 0.5]) and s.textured == []
+    assert any("nothere.png" in w and "Kd factor alone" in w for w in s.warnings), s.warnings
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    s = load_scene(write(tmp_path, QUAD_UV, mtl.replace("nothere", "bad")))
+    assert np.allclose(s.rho, [0.3, 0.4, 0.5])
+    assert any("bad.png" in w for w in s.warnings)
+
+
+def _textured_gltf(tmp_path, image_uri="tex.png"):
+    pos = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)  # glTF: v down from the top
+    idx = np.array([0, 1, 2, 0, 2, 3], np.uint16)
+    blob = pos.tobytes() + uv.tobytes() + idx.tobytes()
+    header = {
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "panel"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2,
+                                    "material": 0}]}],
+        "materials": [{"name": "painted", "doubleSided": True,
+                       "pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.9, 0.7, 1.0],
+                                                "baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0}], "images": [{"uri": image_uri}],
+        "buffers": [{"byteLength": len(blob),
+                     "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 48},
+                        {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+                        {"buffer": 0, "byteOffset": 80, "byteLength": 12}],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+             "min": [0, 0, 0], "max": [1, 1, 0]},
+            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"},
+        ],
+    }
+    path = tmp_path / "panel.gltf"
+    path.write_text(json.dumps(header))
+    return path
+
+
+def test_gltf_base_colour_texture_mean_and_double_sided(tmp_path):
+    _png(tmp_path / "tex.png", TEX)
+    s = load_scene(_textured_gltf(tmp_path))
+    mean = _linear(TEX).reshape(-1, 3).mean(axis=0)
+    area = triangle_areas(s.vertices[s.faces])
+    np.testing.assert_allclose((s.rho * area[:, None]).sum(axis=0) / area.sum(), [0.5, 0.9, 0.7] * mean,
+                               atol=0.01)
+    assert s.textured == ["painted"]
+    assert s.two_sided is not None and s.two_sided.all()  # doubleSided
+    p = s.patches()
+    assert len(p) == 4 and p.is_back.sum() == 2
+    # the two triangles see different texels: the orientation of V is honoured (glTF: from
+    # the top); the triangle (0,1,2) covers the image's bottom-right half (blue/grey + green)
+    tri0 = _linear(TEX)
+    expect0 = (tri0[0, 1] + tri0[1, 0] + 2 * tri0[1, 1]) / 4  # green, blue, grey twice (diagonal)
+    assert np.allclose(s.rho[0], [0.5, 0.9, 0.7] * expect0, atol=0.06)
+
+
+def test_gltf_missing_texture_warns_and_uses_the_factor(tmp_path):
+    s = load_scene(_textured_gltf(tmp_path, "gone.png"))
+    assert np.allclose(s.rho, [0.5, 0.9, 0.7]) and s.textured == []
+    assert any("gone.png" in w for w in s.warnings), s.warnings
