@@ -30,13 +30,12 @@ from pathlib import Path
 import numpy as np
 
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, assemble, build_subscenes
+from dcrad.divide import DivideConfig, assemble, build_subscenes, check_subscenes, subscene_limit
 from dcrad.energy import rms_error
 from dcrad.errors import DcradError
-from dcrad.pipeline import _is_floor_plan, adopt_divided, prepare, write_outputs
-from dcrad.report import residual_estimate, run_report, write_json
+from dcrad.pipeline import _is_floor_plan, divided_books, finish_run, prepare, scene_settings
+from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
-from dcrad.solve import Solver
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import ledger_to_pb
 
@@ -263,7 +262,7 @@ class JobManager:
             return None
         for h in handles:
             h.checkpoint = resume.cells[h.cell]
-        log.info("job %s resumes from barrier %d (%.1f s in) after a coordinator restart",
+        log.warning("job %s resumes from barrier %d (%.1f s in) after a coordinator restart",
                  job.id, resume.barrier, resume.elapsed)
         return resume
 
@@ -317,9 +316,10 @@ class JobManager:
             shutil.rmtree(job.root, ignore_errors=True)
             raise DcradError(f"the upload has no file '{spec.scene}' (the scene named in the job)")
         try:
-            prepare(scene_dir / spec.scene, spec.solver.patch_size or None, spec.solver.scale or 1.0)
+            _, patches, _ = prepare(scene_dir / spec.scene, spec.solver.patch_size or None,
+                                    spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided)
             solver_config(spec.solver)
-            self._divide(spec, 1)
+            check_subscenes(self._divide(spec, 1).subscenes, len(patches))
         except DcradError as exc:
             shutil.rmtree(job.root, ignore_errors=True)
             # name the file as the user uploaded it, not by the coordinator's folder
@@ -364,13 +364,16 @@ class JobManager:
     def _solve(self, job: Job) -> None:
         spec = job.spec
         config = solver_config(spec.solver)
+        t0 = time.perf_counter()
         scene, patches, size = prepare(job.root / "scene" / spec.scene, spec.solver.patch_size or None,
-                                       spec.solver.scale or 1.0)
+                                       spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided)
+        timings = {"load_and_mesh_s": time.perf_counter() - t0}
         live = self.pool.wait_for(1, self.worker_wait)
         if live == 0:
             raise NoWorkers(f"no worker registered within {self.worker_wait:.0f} s")
-        divide = self._divide(spec, live)
+        divide = self._divide(spec, min(live, subscene_limit(len(patches))))  # a small scene: fewer
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
+        t0 = time.perf_counter()
         subs, boundaries, parents, part = build_subscenes(patches, config, divide)
         job.subscenes = len(subs)
         handles = [RemoteSubscene(job.id, s, self.pool, self.rpc_timeout) for s in subs]
@@ -382,6 +385,7 @@ class JobManager:
         try:
             for h in handles:
                 h.place()
+            timings["setup_s"] = time.perf_counter() - t0  # partition, clip, load on the workers
             job.workers = sorted({h.worker.address for h in handles})
             pieces = [s.patches for s in subs]
 
@@ -422,28 +426,24 @@ class JobManager:
                 job.preview.render(patches.radiosity, run.barriers)
                 self.count(previews=1)
             job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), run.barriers)
-            solver = Solver(patches, config)
-            divided = adopt_divided(solver, run, boundaries, part, divide, len(subs))
-            out = job.root / "out"
-            outputs = write_outputs(out, scene, patches, spec.preview_width or 640, spec.preview_height or 480)
-            settings = config.as_dict() | {"patch_size_m": size, "scale": spec.solver.scale or 1.0}
-            report = run_report(scene, solver, settings, {"solve_s": run.wall_seconds},
-                                list(scene.warnings), outputs)
-            report["divided"] = divided | {
+            timings["solve_s"] = run.wall_seconds
+            books = divided_books(run, patches, config, boundaries, part, divide, timings)
+            books.divided |= {
                 "reassigned": [h.reassigned for h in handles],
                 "bytes_relayed": sum(h.bytes_relayed for h in handles),
                 "checkpoint_bytes": sum(h.checkpoint_bytes for h in handles),
                 "compute_seconds": [h.compute_s for h in handles],
                 "rpc_seconds": [h.rpc_seconds for h in handles],
                 "preview_seconds": job.preview.seconds,
+                "checkpoints": {k: v for k, v in writer.stats.items() if k != "per_barrier"},
             }
-            report["error_curve"] = self.curve_dict(job)
-            report["divided"]["checkpoints"] = {k: v for k, v in writer.stats.items() if k != "per_barrier"}
             if resume is not None:
-                report["choices"].append(f"resumed from barrier {resume.barrier} after a coordinator restart "
-                                         f"(checkpoints on disk)")
-            write_json(out / "report.json", report)
-            job.report = report
+                books.choices.append(f"resumed from barrier {resume.barrier} after a coordinator restart "
+                                     f"(checkpoints on disk)")
+            settings = config.as_dict() | scene_settings(scene, size, spec.solver.scale or 1.0,
+                                                         spec.solver.two_sided, spec.solver.workplane)
+            job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
+                                    spec.preview_height or 480, extra={"error_curve": self.curve_dict(job)})
             job.residual = run.ledger.residual()
             job.state = "cancelled" if run.stopped_by == "stopped" else "done"
         finally:

@@ -25,6 +25,7 @@ import numpy as np
 from dcrad.boundary import RayParcel, TwinBuffer
 from dcrad.divide import SubsceneState, subscene_arrays
 from dcrad.errors import DcradError
+from dcrad.noise import NoiseSums
 from dcrad.settings import to_pb
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
@@ -82,6 +83,8 @@ class WorkerPool:
             elif not w.alive:
                 log.info("worker %s is back", address)
                 w.alive, w.channel = True, None
+            # a worker restarted on the same address may have a new name and capacity
+            w.name, w.capacity = name, max(1, capacity)
             self.changed.notify_all()
             return w
 
@@ -268,7 +271,9 @@ class RemoteSubscene:
             return self._state0
         tallies = np.array(list(s.return_tallies) or [0.0] * 12, np.float64).reshape(4, 3)
         return SubsceneState(self.cell, ledger_from_pb(s.ledger), s.shots, s.rays, s.twin_entries, s.twin_bytes,
-                             s.area, tallies, s.twins_delivered, s.twin_blocks)
+                             s.area, tallies, s.twins_delivered, s.twin_blocks, s.batches, s.trace_s,
+                             np.array(s.back_by_obj, np.float64),
+                             NoiseSums.from_list(s.noise) if len(s.noise) else None)
 
     def radiosity(self) -> np.ndarray:
         """(n,3) radiosity of the subscene's patches at the last barrier."""

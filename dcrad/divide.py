@@ -29,8 +29,10 @@ import numpy as np
 from .boundary import (Boundary, RayParcel, TwinBuffer, coarsen_directions, direction_levels, transfer,
                        transfer_rays)
 from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
+from .accuracy import by_accuracy, noise_floor, resolve
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .errors import ConfigError
+from .noise import Estimate, NoiseSums, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
 from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
@@ -39,8 +41,12 @@ from .solve import Snapshot, Solver, Stiffness, stiffness
 __all__ = [
     "Subscene", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor", "DivideConfig",
     "build_subscenes", "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene",
-    "boundaries_to_array", "boundaries_from_array",
+    "boundaries_to_array", "boundaries_from_array", "run_subscenes",
 ]
+
+
+#: exact mode: a subscene's barrier comes once this many batches' worth of rays crossed its boundaries
+FORWARD_CAP = 4
 
 
 class SequentialExecutor(Executor):
@@ -72,6 +78,12 @@ class SubsceneState:
     tallies: np.ndarray = field(default_factory=lambda: np.zeros((4, 3)))
     twins_delivered: int = 0  #: twin entries received from neighbours so far
     twin_blocks: int = 0  #: what they were stored as (``Subscene.deliver``)
+    batches: int = 0  #: Embree calls so far
+    trace_seconds: float = 0.0  #: s spent inside trace so far
+    #: (n_objects,) W that hit back faces, by object index (the flipped-normals warning)
+    back_by_obj: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: the half-solution sums of the error estimate (noise.py); None: not reported
+    noise: NoiseSums | None = None
 
 
 class Subscene(Solver):
@@ -171,7 +183,9 @@ class Subscene(Solver):
             side = np.where(crossing[es] == 0, 1.0, -1.0)
             origins[sel] = o + (self._offset * side)[:, None] * b.normal[None, :]
             dirs[sel] = d
-        return RayBatch(origins=origins, dirs=dirs, power=per_ray_power(power, counts), shooter=owner)
+        # halves at random (noise.py): the twin rays' sampling noise is counted, V = 0 for twin power
+        return RayBatch(origins=origins, dirs=dirs, power=per_ray_power(power, counts), shooter=owner,
+                        half=self.rng.random(total) < 0.5)
 
     def _held(self) -> list:
         return [self.sent, self.pending] + ([self.forward] if self.mode == "exact" else [])
@@ -189,7 +203,8 @@ class Subscene(Solver):
             sel = part.boundary == b.id
             side[sel] = np.where(part.dirs[sel] @ b.normal > 0, 1.0, -1.0)
             part.origins[sel] += (self._offset * side[sel])[:, None] * b.normal[None, :]
-        batch = RayBatch(part.origins, part.dirs, part.power, np.zeros(len(part), np.int64))
+        batch = RayBatch(part.origins, part.dirs, part.power, np.zeros(len(part), np.int64),
+                         self.rng.random(len(part)) < 0.5)  # halves at random (noise.py)
         tally = self.fire(batch, time.perf_counter())
         self.commit(batch, tally, shot=np.zeros((0, 3)))  # continued light, shot elsewhere
         return self.counted(0, len(batch))
@@ -213,16 +228,18 @@ class Subscene(Solver):
         t0 = time.perf_counter()
         batches = []
         if is_patch.any():
-            batches.append(patch_rays(p, idx[is_patch], counts[is_patch], power[is_patch], self.rng))
+            batches.append(patch_rays(p, idx[is_patch], counts[is_patch], power[is_patch], self.rng,
+                                      self.noise.shot_diff(idx[is_patch], p.area)))
         twin_idx = idx[~is_patch] - n
         if len(twin_idx):
             batches.append(self.twin_rays(pending, twin_idx, counts[~is_patch], power[~is_patch]))
         batch = batches[0] if len(batches) == 1 else RayBatch(
-            *(np.concatenate([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "power", "shooter")))
+            *(np.concatenate([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "power", "shooter", "half")))
         tally = self.fire(batch, t0)
 
         # Shooters give up their power (twins leave the pending buffer)
-        p.unshot[idx[is_patch]] -= amounts
+        self.release(idx[is_patch], amounts)  # keeps the ledger's unshot sums
+        self.noise.shot(idx[is_patch])
         if len(twin_idx):
             self.pending.take(twin_idx)
         n_patch = len(batches[0]) if is_patch.any() else 0
@@ -284,12 +301,19 @@ class Subscene(Solver):
         job's emitted power shared over the subscenes, so when every subscene
         meets it the job's residual is below tol.  A subscene then does a fixed share
         of its own work per barrier however much light it was handed.
+
+        Exact mode: the barrier also comes once ``sent`` holds ``FORWARD_CAP``
+        batches' worth of crossing rays, so forwarded rays (80 bytes each) stay
+        bounded in memory and on the wire.
         """
         self.plan = plan
         rays = 0
         goal = max(self.local_target, 0.25 * self.local_residual()) if self.local_target > 0 else 0.0
+        cap = FORWARD_CAP * self.config.batch_rays
         for _ in range(n):
             if goal > 0 and self.local_residual() <= goal:
+                break
+            if self.mode == "exact" and len(self.sent) >= cap:
                 break
             r = self.step()
             if r == 0:
@@ -334,7 +358,8 @@ class Subscene(Solver):
         return SubsceneState(self.cell, self.ledger.copy(), self.stats.shots, self.stats.rays,
                              sum(len(h) for h in held), sum(h.nbytes() for h in held),
                              self.patches.total_area, self.tallies.copy(),
-                             self.twins_delivered, self.twin_blocks)
+                             self.twins_delivered, self.twin_blocks, self.stats.batches,
+                             self.stats.trace_seconds, self.back_by_obj.copy(), self.noise.sums())
 
     def radiosity(self) -> np.ndarray:
         return self.patches.radiosity
@@ -370,6 +395,7 @@ class DividedRun:
     wall_seconds: float = 0.0
     max_twin_bytes: int = 0
     stiff: Stiffness | None = None  #: the last barrier plan's stiffness that changed shooting
+    estimate: Estimate | None = None  #: the job's error estimate at the last barrier (``job_estimate``)
 
 
 def job_ledger(states: list[SubsceneState]) -> Ledger:
@@ -377,6 +403,18 @@ def job_ledger(states: list[SubsceneState]) -> Ledger:
     for s in states:
         total += s.ledger
     return total
+
+
+def job_estimate(states: list[SubsceneState], led: Ledger) -> Estimate | None:
+    """The job's error estimate (noise.py) from every subscene's half-solution sums, return
+    tallies and the job ledger's unshot and in-flight power; None if a subscene sent no sums."""
+    if not states or any(s.noise is None for s in states):
+        return None
+    sums = sum((s.noise for s in states), NoiseSums(rho2=np.zeros(3)))
+    tallies = sum((s.tallies for s in states), np.zeros((4, 3)))
+    held = np.maximum(led.unshot_abs, np.abs(led.unshot)) + np.maximum(led.in_flight_abs, np.abs(led.in_flight))
+    mean_rho = np.sqrt(sums.rho2 / max(sums.area, 1e-300))  # before the first shot (an upper bound)
+    return combine(sums, bias_ambient(tallies, held, sums.area, mean_rho))
 
 
 @dataclass(frozen=True)
@@ -420,6 +458,7 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
     first_barrier : barriers already done (handles resumed from that barrier's checkpoints)
     """
     executor = executor or SequentialExecutor()
+    config = resolve(config)  # the stop rule: by the error estimate, or at the residual tol
     run = DividedRun(ledger=Ledger(), barriers=first_barrier)
     t0 = time.perf_counter()
 
@@ -429,7 +468,9 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
         run.states = states
         shots = sum(s.shots for s in states)
         rays = sum(s.rays for s in states)
-        run.snapshots.append(Snapshot(time.perf_counter() - t0, shots, rays, led.residual(), led.closure()))
+        run.estimate = est = job_estimate(states, led)
+        run.snapshots.append(Snapshot(time.perf_counter() - t0, shots, rays, led.residual(), led.closure(),
+                                      finite(est.rms) if est else None, finite(est.rms_refl) if est else None))
         run.barrier_closures.append(led.closure())
         run.max_twin_bytes = max(run.max_twin_bytes, sum(s.twin_bytes for s in states))
         if assemble_B is not None:
@@ -443,6 +484,10 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
             reason = "no_emitters"
         elif led.residual() <= config.tol:
             reason = "tolerance"
+        elif by_accuracy(config) and run.estimate is not None and run.estimate.rms_refl <= config.accuracy:
+            reason = "accuracy"
+        elif by_accuracy(config) and run.estimate is not None and noise_floor(run.estimate, config.accuracy):
+            reason = "noise_floor"
         elif config.time_limit and time.perf_counter() - t0 >= config.time_limit:
             reason = "time_limit"
         elif config.max_rays and run.snapshots[-1].rays >= config.max_rays:
@@ -474,6 +519,24 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
     return run
 
 
+#: the most subscenes of one job, and the fewest patches a subscene must have on average
+MAX_SUBSCENES, MIN_PATCHES_PER_SUBSCENE = 256, 16
+
+
+def subscene_limit(n_patches: int) -> int:
+    """The most subscenes a scene of ``n_patches`` patches may be cut into."""
+    return max(1, min(MAX_SUBSCENES, n_patches // MIN_PATCHES_PER_SUBSCENE))
+
+
+def check_subscenes(k: int, n_patches: int) -> None:
+    """ConfigError when k subscenes are more than the scene can use (``subscene_limit``)."""
+    limit = subscene_limit(n_patches)
+    if k > limit:
+        raise ConfigError(f"{k} subscenes for {n_patches} patches: at most {limit} (each subscene needs "
+                          f"{MIN_PATCHES_PER_SUBSCENE} patches on average, and a job at most {MAX_SUBSCENES}); "
+                          f"use fewer subscenes or a smaller --patch-size")
+
+
 def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig, planes=None, boxes=None):
     """subDivideScene: partition, clip, make boundaries and one Subscene per cell.
 
@@ -482,6 +545,9 @@ def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig
     from .boundary import make_boundary
     from .partition import clip, partition
 
+    if planes is None and boxes is None:
+        check_subscenes(divide.subscenes, len(patches))
+    config = resolve(config, len(patches))  # the job's ray density: from its patch count
     part = partition(patches, divide.subscenes, planes=planes, boxes=boxes)
     pieces = clip(patches, part)
     # Portal cells must be small next to walls and doorways: re-emitted twin light
@@ -519,6 +585,15 @@ def solve_divided(patches: Patches, config: SolverConfig | None = None, divide: 
     config = config or SolverConfig()
     divide = divide or DivideConfig()
     subs, boundaries, parents, part = build_subscenes(patches, config, divide, planes, boxes)
+    run = run_subscenes(patches, subs, boundaries, parents, config, divide, executor, record, **run_kwargs)
+    return run, subs, boundaries, part
+
+
+def run_subscenes(patches: Patches, subs: list[Subscene], boundaries: list[Boundary], parents: list[np.ndarray],
+                  config: SolverConfig, divide: DivideConfig, executor: Executor | None = None, record=True,
+                  **run_kwargs) -> DividedRun:
+    """Iterate in-process subscenes (``build_subscenes``) with barriers until a stop criterion;
+    write the assembled B and unshot back into ``patches``."""
     pieces = [s.patches for s in subs]
 
     def assemble_B():
@@ -528,7 +603,7 @@ def solve_divided(patches: Patches, config: SolverConfig | None = None, divide: 
                       assemble_B if record else None, **run_kwargs)
     patches.radiosity = assemble_B()
     patches.unshot = assemble(len(patches), patches.area, parents, pieces, [s.patches.unshot for s in subs])
-    return run, subs, boundaries, part
+    return run
 
 
 # == moving subscenes between processes (no networking here: plain arrays) ==========

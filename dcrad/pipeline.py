@@ -13,22 +13,40 @@ from pathlib import Path
 
 import numpy as np
 
+from .accuracy import describe, noise_floor_note, resolve, solve_to_accuracy
 from .config import SolverConfig
+from .divide import build_subscenes, run_subscenes
 from .errors import SceneError
 from .patches import Patches
-from .report import run_report, write_json
-from .solve import Solver
+from .rays import Tracer
+from .report import TIMINGS, RunBooks, run_report, write_json
+from .solve import GREY_CHOICE, Solver, Stats, stiff_choice
 
-__all__ = ["default_patch_size", "prepare", "write_outputs", "solve_to", "resolve_scene", "adopt_divided"]
+__all__ = ["default_patch_size", "prepare", "write_outputs", "solve_to", "resolve_scene", "divided_books",
+           "finish_run"]
 
 log = logging.getLogger("dcrad")
 
 
 def default_patch_size(scene) -> float:
-    """Automatic maximum patch edge (m): 1/40 of the scene's box diagonal."""
-    used = scene.vertices[np.unique(scene.faces[scene.valid])]
+    """Automatic maximum patch edge (m), from the scene's own detail, not its size alone.
+
+    The smaller of 1/40 of the box diagonal and 1/3 of the median edge of the
+    input triangles.  The median edge is a property of what the scene is made of
+    (rooms, doors, furniture), so a building of 400 rooms is meshed like one of 9
+    (the office: 0.40 m at 3x3, 8x8 and 20x20 rooms; the diagonal alone gave 2.9 m
+    at 20x20); the diagonal keeps small scenes of a few big triangles (Cornell,
+    furnace) as fine as before.
+    """
+    faces = scene.faces[scene.valid]
+    if len(faces) == 0:
+        return 0.0
+    used = scene.vertices[np.unique(faces)]
     diag = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
-    return diag / 40.0
+    tri = scene.vertices[faces]
+    edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
+    detail = float(np.median(edges)) / 3.0
+    return min(diag / 40.0, detail) if detail > 0 else diag / 40.0
 
 
 def resolve_scene(spec: str, workdir: Path) -> Path:
@@ -55,92 +73,191 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
         raise SceneError(f"built-in scene '{name}': {exc}") from None
 
 
-def prepare(path, patch_size: float | None = None, scale: float = 1.0):
-    """Load, validate and mesh a scene: returns (scene, patches, patch_size used)."""
+def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str | None = None,
+            two_sided: bool = False):
+    """Load, validate and mesh a scene: returns (scene, patches, patch_size used).
+
+    ``up`` (None: detect) and ``two_sided``: see scene.load_scene.
+    """
     from .scene import load_scene
 
-    scene = load_scene(path, scale=scale)
+    scene = load_scene(path, scale=scale, up=up, two_sided=two_sided)
     size = patch_size if patch_size and patch_size > 0 else default_patch_size(scene)
     return scene, scene.patches(size), size
 
 
+def scene_settings(scene, patch_size: float, scale: float, two_sided: bool = False,
+                   workplane: float = 0.0) -> dict:
+    """The report's scene settings: patch size, scale, up axis (and how it was found),
+    two-sided (the flag; ``two_sided_triangles`` counts every two-sided input triangle),
+    work-plane height, textured materials."""
+    return {"patch_size_m": patch_size, "scale": scale, "up": scene.up, "up_source": scene.up_source,
+            "two_sided": bool(two_sided),
+            "two_sided_triangles": int(scene.two_sided.sum()) if scene.two_sided is not None else 0,
+            "workplane_m": float(workplane), "textured_materials": list(scene.textured)}
+
+
 def _is_floor_plan(patches: Patches) -> bool:
-    """A multi-room floor: much wider than it is tall (Y up)."""
+    """A multi-room floor: much wider than it is tall (internal frame: Y up, whatever the input's up axis)."""
     ext = patches.bounds[1] - patches.bounds[0]
     return max(ext[0], ext[2]) > 2.5 * max(ext[1], 1e-12)
 
 
-def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: int = 480) -> dict:
-    """Write every output file; return {name: relative path} of what was written."""
-    from . import export, render
+def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: int = 480,
+                  sections: dict | None = None, workplane: float = 0.0) -> dict:
+    """Write every output file; return {name: relative path} of what was written.
+
+    Meshes are written in the input file's frame (``scene.rotation``); views use one
+    exposure from the lit surfaces (render.scene_exposure).  ``sections`` (a dict)
+    receives the report's ``photometry`` section; ``workplane`` > 0 adds a work-plane
+    grid that many metres above the floor.
+    """
+    from . import export, photometry, render
 
     out.mkdir(parents=True, exist_ok=True)
     written = {}
     corners = render.corner_radiosity(patches)
-    export.write_radiosity_npz(out / "radiosity.npz", patches, len(scene.faces), {"valid_input": scene.valid})
+    exposure = render.scene_exposure(patches)
+    tracer = Tracer(patches.triangles)
+    h, gathered = photometry.irradiance(patches, tracer)
+    lux = photometry.to_lux(h)
+    grid = photometry.workplane(patches, workplane, tracer=tracer) if workplane > 0 else None
+    extra = {"valid_input": scene.valid, "patch_E_lux": lux, "patch_L_cd_m2": photometry.luminance_cd(patches.radiosity)}
+    if grid is not None:
+        extra |= {"workplane_points": scene.to_input_frame(grid["points"]), "workplane_lux": grid["lux"]}
+    export.write_radiosity_npz(out / "radiosity.npz", patches, len(scene.faces), extra)
     written["radiosity"] = "radiosity.npz"
-    export.write_patches_ply(out / "patches.ply", patches)
+    export.write_patches_ply(out / "patches.ply", patches, rotation=scene.rotation)
     written["patches"] = "patches.ply"
-    export.write_glb(out / "scene.glb", patches, corners)
+    export.write_glb(out / "scene.glb", patches, corners, exposure=exposure, rotation=scene.rotation)
     written["mesh"] = "scene.glb"
 
     camera = render.camera_from_dict(scene.camera, width, height) if scene.camera else render.auto_camera(patches, width, height)
-    img = render.render(patches, camera, corner_values=corners)
-    export.write_png(out / "preview.png", render.tonemap(img))
+    img = render.render(patches, camera, corner_values=corners, tracer=tracer, samples=render.SAMPLES,
+                        exposure=exposure)
+    export.write_png(out / "preview.png", render.tonemap(img, exposure=exposure))
     export.write_exr(out / "preview.exr", img)
     written["preview_png"] = "preview.png"
     written["preview_exr"] = "preview.exr"
+    view, mask = camera, None
     if _is_floor_plan(patches):
-        top = render.topdown_camera(patches, width, height)
-        img = render.render(patches, top, mask=render.cutaway_mask(patches), corner_values=corners)
-        export.write_png(out / "preview_top.png", render.tonemap(img))
+        view, mask = render.topdown_camera(patches, width, height), render.cutaway_mask(patches)
+        img = render.render(patches, view, mask=mask, corner_values=corners, samples=render.SAMPLES,
+                            exposure=exposure)
+        export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure))
         export.write_exr(out / "preview_top.exr", img)
         written["preview_top_png"] = "preview_top.png"
         written["preview_top_exr"] = "preview_top.exr"
+    # false colour: lux, front coverage and back coverage as three rendered channels
+    lamp = np.any(patches.emission > 0, axis=1)
+    top = photometry.legend_scale(lux[~lamp], patches.area[~lamp])
+    values = np.stack([lux, np.ones(len(lux)), np.zeros(len(lux))], axis=1)
+    cv = render.corner_radiosity(patches, values=values)
+    fc = render.render(patches, view, mask=mask, corner_values=cv, samples=render.SAMPLES,
+                       tracer=tracer if mask is None else None, backface_color=(0.0, 0.0, 1.0 / np.pi))
+    fc = fc.astype(np.float64) * np.pi
+    export.write_png(out / "illuminance.png", photometry.false_colour(fc[..., 0], fc[..., 1], fc[..., 2], top))
+    written["illuminance_png"] = "illuminance.png"
+    if sections is not None:
+        section = {
+            "efficacy_lm_per_W": photometry.EFFICACY, "Y_weights_rgb": photometry.Y_WEIGHTS.tolist(),
+            "method": "E = 179 lm/W x Y(H), H = (B - E)/rho per channel; channels with rho < "
+                      f"{photometry.RHO_GATHER:g} gathered with {photometry.GATHER_RAYS} rays from the solution; "
+                      "L = 179 x Y(B) / pi",
+            "gathered_patches": int(gathered.sum()),
+            "legend_max_lux": top,
+            "view": "top-down cut-away" if mask is not None else "preview camera",
+            "surfaces": photometry.surface_stats(patches, lux),
+        }
+        if grid is not None:
+            section["workplane"] = {k: v for k, v in grid.items() if k not in ("points", "lux")}
+        sections["photometry"] = section
     return written
 
 
-def adopt_divided(solver, run, boundaries, part, divide, subscenes: int, trace_seconds: float = 0.0) -> dict:
-    """Give ``solver`` a divided run's books and choices; return the report's ``divided`` section.
+def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part, divide,
+                  timings: dict[str, float] | None = None) -> RunBooks:
+    """The books of a divided run (in process or on workers) from its last barrier's states.
 
-    Used by ``solve_to`` (in process) and by the coordinator (remote workers), which
-    adds its own service figures to the returned dict.
+    ``patches`` holds the assembled B.  The report's ``divided`` section is in
+    ``books.divided``; the coordinator adds its service figures to it.
     """
-    solver.adopt_divided(run, trace_seconds)
+    states = run.states
+    last = run.snapshots[-1]
+    stats = Stats(shots=last.shots, rays=last.rays, batches=sum(s.batches for s in states),
+                  barriers=run.barriers, trace_seconds=float(sum(s.trace_seconds for s in states)),
+                  wall_seconds=run.wall_seconds, stopped_by=run.stopped_by)
+    back = np.zeros(max(len(patches.names), 1))
+    for s in states:
+        back[: len(s.back_by_obj)] += s.back_by_obj[: len(back)]
+    choices = []
+    if patches.is_grey and len(patches):
+        choices.append(GREY_CHOICE)
     if divide.mode == "binned":
         # dense: a sent and a pending buffer for each crossing of every portal cell and bin
         dense = sum(2 * b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
-        solver.choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
-                              f"against {dense} bytes dense (sent and pending, every portal cell, bin "
-                              f"and crossing)")
-        delivered = sum(s.twins_delivered for s in run.states)
-        blocks = sum(s.twin_blocks for s in run.states)
-        if solver.config.adaptive_bins and delivered:
-            solver.choices.append(f"directional resolution where the energy is: {delivered} twin entries "
-                                  f"arrived, kept as {blocks} direction blocks (light weaker than one ray "
-                                  f"shares coarser bins)")
+        choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
+                       f"against {dense} bytes dense (sent and pending, every portal cell, bin "
+                       f"and crossing)")
+        delivered = sum(s.twins_delivered for s in states)
+        blocks = sum(s.twin_blocks for s in states)
+        if config.adaptive_bins and delivered:
+            choices.append(f"directional resolution where the energy is: {delivered} twin entries "
+                           f"arrived, kept as {blocks} direction blocks (light weaker than one ray "
+                           f"shares coarser bins)")
     if run.stiff is not None:
-        from .solve import stiff_choice
+        choices.append(stiff_choice(run.stiff, config) + " (for the whole divided job)")
+    divided = {"subscenes": len(states), "boundaries": len(boundaries), "barriers": run.barriers,
+               "mode": divide.mode, "iterations": divide.iterations,
+               "barrier_batches": ("adaptive, at most %d" % divide.max_iterations) if divide.adaptive
+               else divide.iterations, "solid": divide.solid,
+               "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
+               "partition": part.as_dict()}
+    choices.append(describe(resolve(config, len(patches))))
+    if run.stopped_by == "noise_floor":
+        choices.append(noise_floor_note(run.estimate, config.accuracy))
+    return RunBooks(patches, config, run.ledger, stats, list(run.snapshots), list(run.snapshot_B), back,
+                    choices, dict(timings or {}), divided, estimate=run.estimate)
 
-        solver.choices.append(stiff_choice(run.stiff, solver.config) + " (for the whole divided job)")
-    return {"subscenes": subscenes, "boundaries": len(boundaries), "barriers": run.barriers,
-            "mode": divide.mode, "iterations": divide.iterations, "solid": divide.solid,
-            "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
-            "partition": part.as_dict()}
+
+def finish_run(out: Path, scene, books: RunBooks, settings: dict, width: int = 640, height: int = 480,
+               extra: dict | None = None) -> dict:
+    """Write every output and report.json for a finished run; return the report.
+
+    The one ending of every path (``solve_to`` single and divided, the
+    coordinator's jobs).  ``settings``: the report's settings (the SolverConfig's
+    fields and the scene's); ``extra``: more top-level report sections (the
+    service's error curve).  ``books.timings`` gains ``outputs_s``.
+    """
+    out = Path(out)
+    t0 = time.perf_counter()
+    warnings = list(scene.warnings) + books.warnings()
+    sections: dict = {}
+    outputs = write_outputs(out, scene, books.patches, width, height, sections,
+                            float(settings.get("workplane_m") or 0.0))
+    books.timings["outputs_s"] = time.perf_counter() - t0
+    timings = {k: float(books.timings.get(k, 0.0)) for k in TIMINGS} | books.timings
+    report = run_report(scene, books, settings, timings, warnings, outputs)
+    report["divided"] = books.divided
+    report.update(sections)
+    report.update(extra or {})
+    write_json(out / "report.json", report)
+    return report
 
 
 class _DividedView:
     """What the progress bar reads, for a divided run."""
 
-    def __init__(self, run, solver):
-        self._run, self.stats = run, solver.stats
-        self.stats.rays = run.snapshots[-1].rays
+    def __init__(self, run):
+        last = run.snapshots[-1]
+        self._last = last
+        self.stats = Stats(shots=last.shots, rays=last.rays, barriers=run.barriers)
 
     def residual(self):
-        return self._run.snapshots[-1].residual
+        return self._last.residual
 
     def elapsed(self):
-        return self._run.snapshots[-1].time
+        return self._last.time
 
     def eta(self):
         return float("nan")
@@ -158,45 +275,44 @@ def solve_to(
     height: int = 480,
     divide=None,
     planes=None,
+    up: str | None = None,
+    two_sided: bool = False,
+    workplane: float = 0.0,
 ) -> dict:
     """Load, solve and write everything to ``out``; return the report dict.
 
     ``divide`` (a DivideConfig) with more than one subscene solves divided, in
     process; one subscene (the default) uses the plain solver: no partition, no twins.
+    ``up``, ``two_sided``, ``workplane``: scene settings (see scene_settings).
     """
     config = config or SolverConfig()
     out = Path(out)
     t0 = time.perf_counter()
-    scene, patches, size = prepare(path, patch_size, scale)
+    scene, patches, size = prepare(path, patch_size, scale, up, two_sided)
     t_load = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    solver = Solver(patches, config)
-    t_build = time.perf_counter() - t0
-    divided = None
     if divide is not None and divide.subscenes > 1:
-        from .divide import solve_divided
-
-        progress = (lambda run: on_progress(_DividedView(run, solver))) if on_progress else None
-        run, subs, boundaries, part = solve_divided(patches, config, divide, planes=planes,
-                                                   on_barrier=progress, should_stop=should_stop)
-        divided = adopt_divided(solver, run, boundaries, part, divide, len(subs),
-                                sum(s.stats.trace_seconds for s in subs))
+        progress = (lambda run: on_progress(_DividedView(run))) if on_progress else None
+        subs, boundaries, parents, part = build_subscenes(patches, config, divide, planes=planes)
+        t_setup = time.perf_counter() - t0
+        run = run_subscenes(patches, subs, boundaries, parents, config, divide,
+                            on_barrier=progress, should_stop=should_stop)
+        timings = {"load_and_mesh_s": t_load, "setup_s": t_setup, "solve_s": run.wall_seconds}
+        books = divided_books(run, patches, config, boundaries, part, divide, timings)
     else:
+        tracer = Tracer(patches.triangles)
+        t_setup = time.perf_counter() - t0
+        solver = solve_to_accuracy(patches, config, tracer, on_progress=on_progress, should_stop=should_stop)
         solver.choices.append("one subscene: no partition, no boundaries, no twin buffers")
-        solver.run(on_progress=on_progress, should_stop=should_stop)
+        solver.choices.append(describe(solver.config))
+        if solver.stats.stopped_by == "noise_floor":
+            solver.choices.append(noise_floor_note(solver.estimate(), solver.config.accuracy))
+        timings = {"load_and_mesh_s": t_load, "setup_s": t_setup, "solve_s": solver.stats.wall_seconds}
+        books = RunBooks.of_solver(solver, timings)
 
-    t0 = time.perf_counter()
-    warnings = list(scene.warnings) + solver.warnings()
-    outputs = write_outputs(out, scene, patches, width, height)
-    t_out = time.perf_counter() - t0
-
-    settings = config.as_dict() | {"patch_size_m": size, "scale": scale}
-    timings = {"load_and_mesh_s": t_load, "embree_build_s": t_build,
-               "solve_s": solver.stats.wall_seconds, "outputs_s": t_out}
-    report = run_report(scene, solver, settings, timings, warnings, outputs)
-    report["divided"] = divided
-    write_json(out / "report.json", report)
-    for w in warnings:
+    settings = config.as_dict() | scene_settings(scene, size, scale, two_sided, workplane)
+    report = finish_run(out, scene, books, settings, width, height)
+    for w in report["warnings"]:
         log.warning(w)
     return report

@@ -1,17 +1,101 @@
-"""Run reports: settings, ledger, rays, timings, snapshots; error-against-time curves."""
+"""Run reports: settings, ledger, rays, timings, snapshots; error-against-time curves.
+
+Every path (in process, in process divided, the coordinator's jobs) hands its
+run's books to ``run_report`` as a ``RunBooks`` (a ``Solver`` has the same
+attributes), so the three reports are one document: the same sections, the same
+``stats`` and ``timings`` keys, warnings and choices from the same code.
+
+timings (s): ``load_and_mesh_s`` (scene file to patches), ``setup_s`` (the Embree
+scene; divided: partition, clipping and subscenes), ``solve_s`` (the solve loop),
+``outputs_s`` (files and previews).
+"""
 
 from __future__ import annotations
 
 import json
 import math
 import platform
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .energy import rms_error
+from .config import TOL, SolverConfig
+from .energy import Ledger, rms_error
+from .patches import Patches
 
-__all__ = ["error_curve", "run_report", "write_json"]
+__all__ = ["RunBooks", "TIMINGS", "error_curve", "flipped_normals", "run_report", "write_json"]
+
+#: the keys of every report's ``timings``
+TIMINGS = ("load_and_mesh_s", "setup_s", "solve_s", "outputs_s")
+
+
+@dataclass
+class RunBooks:
+    """What a finished run hands to its report: the same for every path.
+
+    patches   : the whole scene's patch table, with the final radiosity and unshot
+    stats     : ``solve.Stats`` (shots, rays, batches, barriers, trace and wall s, stopped_by)
+    snapshots : ``solve.Snapshot`` list, with B of each in ``snapshot_B``
+    back_by_obj : (n_objects,) W that hit back faces, by object index
+    choices   : what the run left out or changed because the scene did not need it
+    divided   : the report's ``divided`` section (None: one subscene)
+    """
+
+    patches: Patches
+    config: SolverConfig
+    ledger: Ledger
+    stats: object
+    snapshots: list = field(default_factory=list)
+    snapshot_B: list = field(default_factory=list)
+    back_by_obj: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    choices: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    divided: dict | None = None
+    #: the error estimate at the end (``noise.Estimate``; None: not available)
+    estimate: object = None
+
+    @classmethod
+    def of_solver(cls, solver, timings: dict[str, float] | None = None) -> "RunBooks":
+        """The books of a single ``Solver`` run."""
+        return cls(solver.patches, solver.config, solver.ledger, solver.stats, list(solver.snapshots),
+                   list(solver.snapshot_B), solver.back_by_obj.copy(), list(solver.choices), dict(timings or {}),
+                   estimate=solver.estimate())
+
+    def residual(self) -> float:
+        return self.ledger.residual()
+
+    def warnings(self) -> list[str]:
+        return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
+                                                                                                  self.patches)
+
+
+def escaped_light(ledger: Ledger, patches: Patches) -> list[str]:
+    """The escaped-light warning: most of the shot power left the scene without hitting
+    anything (above TOL.escape_warn), naming the (at most five) emitting objects."""
+    shot = float(ledger.emitted.sum() - ledger.unshot.sum())
+    escaped = float(ledger.escaped.sum())
+    if not (shot > 0 and escaped / shot > TOL.escape_warn):
+        return []
+    emitting = np.unique(patches.obj[patches.emission.max(axis=1) > 0])
+    names = [patches.names[i] for i in emitting[:5] if i < len(patches.names)]
+    return [f"{100 * escaped / shot:.1f}% of the shot power escaped the scene without hitting anything: "
+            f"do the lights ({', '.join(names) or '?'}) face away from it (emitters light their front, "
+            f"counter-clockwise side), or is the scene open?"]
+
+
+def flipped_normals(ledger: Ledger, back_by_obj: np.ndarray, names: list[str]) -> list[str]:
+    """The flipped-normals warning (back-face share of shot power above TOL.backface_warn),
+    naming the (at most five) objects whose back faces took the most power."""
+    shot = float(ledger.emitted.sum() - ledger.unshot.sum())
+    back = float(ledger.back_faces.sum())
+    if not (shot > 0 and back / shot > TOL.backface_warn):
+        return []
+    back_by_obj = np.asarray(back_by_obj, np.float64)
+    order = np.argsort(-back_by_obj)
+    worst = [names[i] for i in order[:5] if back_by_obj[i] > 0 and i < len(names)]
+    return [f"{100 * back / shot:.1f}% of the shot power hit back faces; normals are probably "
+            f"flipped on: {', '.join(worst) or '(no object recorded)'}"]
 
 
 def error_curve(snapshot_B: list, reference: np.ndarray, area: np.ndarray) -> list[float]:
@@ -32,12 +116,25 @@ def residual_estimate(residual: float, radiosity: np.ndarray, area: np.ndarray) 
     return residual * math.sqrt(mean_sq)
 
 
+def error_section(est) -> dict | None:
+    """report.json ``error``: the estimated RMS error of the returned B against the converged
+    solution of the same discrete problem (noise.Estimate), with a note on what it covers."""
+    if est is None:
+        return None
+    out = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in est.as_dict().items()}
+    out["note"] = ("estimate, not a measurement: rms in W/m^2, rms_norm over RMS(B), rms_refl/noise_refl/"
+                   "bias_refl over RMS(B - E); preview images may be filtered, radiosity data never is")
+    return out
+
+
 def run_report(scene, solver, settings: dict, timings: dict, warnings: list[str], outputs: dict) -> dict:
-    """The JSON-ready report of one solve."""
+    """The JSON-ready report of one solve; ``solver``: its ``RunBooks`` (or a ``Solver``)."""
     p = solver.patches
     snaps = [s.as_dict() for s in solver.snapshots]
-    for s, b in zip(snaps, solver.snapshot_B):
-        s["rms_estimate"] = residual_estimate(s["residual"], b, p.area)
+    for s in snaps:
+        s["rms_estimate"] = s.get("error_rms")
+    est = getattr(solver, "estimate", None)
+    est = est() if callable(est) else est
     # measured error of every snapshot against the final state (the run's own limit)
     final = p.radiosity
     for s, b in zip(snaps, solver.snapshot_B):
@@ -58,6 +155,7 @@ def run_report(scene, solver, settings: dict, timings: dict, warnings: list[str]
         "settings": settings,
         "ledger": solver.ledger.as_dict(),
         "residual": solver.residual(),
+        "error": error_section(est),
         "stats": stats,
         "rays_per_second": stats["rays"] / wall,
         "trace_share": stats["trace_seconds"] / wall,
@@ -66,7 +164,8 @@ def run_report(scene, solver, settings: dict, timings: dict, warnings: list[str]
         "choices": list(getattr(solver, "choices", [])),
         "snapshots": snaps,
         "snapshot_note": (
-            "rms_estimate: live estimate from the residual (B* unknown); "
+            "rms_estimate (= error_rms; error_refl over RMS(B - E)): the live error estimate, "
+            "noise from two independent half-solutions plus the unshot bias (B* unknown); "
             "rms_vs_final: measured against this run's final state, which "
             "itself carries the final residual"
         ),

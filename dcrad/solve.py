@@ -51,13 +51,30 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import TOL, SolverConfig
+from .config import SolverConfig
+from .accuracy import by_accuracy, noise_floor, resolve
 from .energy import Ledger
+from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
-from .shoot import deposit, patch_rays, trace
+from .report import escaped_light, flipped_normals
+from .direct import gather_direct, shadow_rays_for
+from .shoot import deposit, patch_rays, ray_offset, trace
+from .shooters import ShooterPool
+from .snapshots import SnapshotStore
 
 __all__ = ["Solver", "Snapshot", "Stiffness", "stiffness", "solve"]
+
+#: batches between exact recounts of the ledger's unshot sums; in between they are
+#: kept incrementally from the rows each batch touched (shooters and rows hit)
+RECOUNT_EVERY = 256
+#: the shooter pool holds this many times max_shooters rows (shooters.py): one
+#: O(patches) rebuild every (POOL_FACTOR - 1) batches or more
+POOL_FACTOR = 16
+
+
+#: the report's line for a scene whose rho and E are grey
+GREY_CHOICE = "grey scene (every rho and E has equal channels): one colour channel is tallied and copied to the other two"
 
 
 @dataclass
@@ -69,6 +86,8 @@ class Snapshot:
     rays: int  #: rays traced so far
     residual: float  #: (unshot + in flight) / emitted
     closure: float  #: ledger imbalance, relative
+    error_rms: float | None = None  #: W/m^2, the estimated RMS error (noise.Estimate.rms)
+    error_refl: float | None = None  #: the same over RMS(B - E) (noise.Estimate.rms_refl)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -78,8 +97,9 @@ class Snapshot:
 class Stats:
     shots: int = 0  #: patches shot
     rays: int = 0  #: rays traced
-    batches: int = 0  #: Embree calls
-    trace_seconds: float = 0.0  #: s spent inside trace (Embree + tally)
+    batches: int = 0  #: Embree calls (divided: summed over subscenes)
+    barriers: int = 0  #: barriers of a divided run (0: one subscene, no barriers)
+    trace_seconds: float = 0.0  #: s spent inside trace (Embree + tally; divided: summed over subscenes)
     wall_seconds: float = 0.0  #: s of the whole run
     stopped_by: str = ""  #: tolerance | time_limit | ray_budget | stopped | no_emitters
 
@@ -98,7 +118,8 @@ class Solver:
 
     def __init__(self, patches: Patches, config: SolverConfig | None = None, tracer: Tracer | None = None):
         self.patches = patches
-        self.config = config or SolverConfig()
+        #: settings with the automatic ones filled in (accuracy.resolve: ray density, stop rule)
+        self.config = resolve(config or SolverConfig(), len(patches))
         self.tracer = tracer if tracer is not None else Tracer(patches.triangles)
         self.rng = np.random.default_rng(self.config.seed)
         self.ledger = Ledger(emitted=patches.emitted_power.copy())
@@ -118,13 +139,22 @@ class Solver:
         self.choices: list[str] = []
         self.channels = 1 if patches.is_grey and len(patches) else 3
         if self.channels == 1:
-            self.choices.append("grey scene (every rho and E has equal channels): one colour channel "
-                                "is tallied and copied to the other two")
+            self.choices.append(GREY_CHOICE)
         #: the stiffness estimate of the last batch that overshot or stretched rays (None: never)
         self.stiff: Stiffness | None = None
         self.snapshots: list[Snapshot] = []
-        self.snapshot_B: list[np.ndarray] = []
+        #: B at each snapshot, float16, at most ``config.snapshot_mb`` MB (snapshots.py)
+        self.snapshot_B: SnapshotStore | list = SnapshotStore()
         self._next_snapshot = 0
+        self._snapshot_factor = self.config.snapshot_factor  #: squared each time the store is thinned
+        #: the candidates for the top-K shooters (shooters.py); ``full_selection``: sort everything
+        self.pool = ShooterPool(patches, POOL_FACTOR * self.config.max_shooters)
+        self.full_selection = False
+        #: batches between exact recounts of the ledger's unshot sums (0: never)
+        self.recount_every = RECOUNT_EVERY
+        self._since_recount = 0
+        #: the two half-solutions' difference, for the error estimate (noise.py)
+        self.noise = NoiseTally(patches)
         self._t0 = time.perf_counter()
 
     # == one Embree call ===========================================================
@@ -184,13 +214,52 @@ class Solver:
         return idx[fits], counts[fits]
 
     def select(self):
-        """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2)."""
+        """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2).
+
+        The top K come from the shooter pool (shooters.py: the same shooters as a
+        full sort, at O(pool + touched rows) per batch).  While overshooting, every
+        patch's amount moves with the ambient term g, so stiff scenes rank the whole
+        table (one O(patches) pass per batch), as ``full_selection`` does.
+        """
         p = self.patches
         st = self.note_stiffness(self.stiffness())
-        amounts = self.shoot_amounts(st)
-        power = amounts * p.area[:, None]
-        idx, counts = self.rank(power, st.min_rays(self.config), ray_factor=st.ray_factor)
-        return idx, counts, power[idx], amounts[idx]
+        floor = st.min_rays(self.config)
+        if self.full_selection or self.ambient(st).any():
+            amounts = self.shoot_amounts(st)
+            power = amounts * p.area[:, None]
+            idx, counts = self.rank(power, floor, ray_factor=st.ray_factor)
+            return idx, counts, power[idx], amounts[idx]
+        rows, _ = self.pool.candidates(self.config.max_shooters, self._negligible)
+        amounts = p.unshot[rows]
+        power = amounts * p.area[rows, None]
+        sel, counts = self.rank(power, floor, ray_factor=st.ray_factor)
+        return rows[sel], counts, power[sel], amounts[sel]
+
+    # -- the ledger's unshot sums, kept incrementally -------------------------------
+    def book_unshot(self, rows: np.ndarray, before: np.ndarray) -> None:
+        """The unshot radiosity of ``rows`` (distinct) changed from ``before`` (k,3): update the sums.
+
+        O(k).  ``recount`` redoes them exactly every ``recount_every`` batches.
+        """
+        after = self.patches.unshot[rows]
+        area = self.patches.area[rows, None]
+        led = self.ledger
+        led.unshot = led.unshot + ((after - before) * area).sum(axis=0)
+        led.unshot_abs = led.unshot_abs + ((np.abs(after) - np.abs(before)) * area).sum(axis=0)
+
+    def release(self, rows: np.ndarray, amounts: np.ndarray) -> None:
+        """Shooters ``rows`` (distinct) give up ``amounts`` (k,3) W/m^2 of unshot radiosity."""
+        before = self.patches.unshot[rows]
+        self.patches.unshot[rows] = before - amounts
+        self.book_unshot(rows, before)
+
+    def recount(self) -> None:
+        """The unshot sums from the whole table (one O(patches) pass; drops the increments' round-off)."""
+        p = self.patches
+        unshot = p.unshot * p.area[:, None]  # W per patch, signed
+        self.ledger.unshot = unshot.sum(axis=0)
+        self.ledger.unshot_abs = np.abs(unshot).sum(axis=0)
+        self._since_recount = 0
 
     def account(self, shot: np.ndarray, tally, absorbed: np.ndarray, extra_lost=0.0) -> None:
         """Book one batch: ledger accounts and the return-ratio tallies used by ``ambient``.
@@ -203,9 +272,9 @@ class Solver:
         led.absorbed = led.absorbed + absorbed
         led.escaped = led.escaped + tally.escaped
         led.back_faces = led.back_faces + tally.back_faces + extra_lost
-        unshot = p.unshot * p.area[:, None]  # W per patch, signed
-        led.unshot = unshot.sum(axis=0)
-        led.unshot_abs = np.abs(unshot).sum(axis=0)
+        self._since_recount += 1
+        if self.recount_every and self._since_recount >= self.recount_every:
+            self.recount()
         self.tallies += np.stack([np.abs(shot).sum(axis=0), tally.lost + np.abs(extra_lost), tally.landed, tally.kept])
         self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
 
@@ -222,7 +291,11 @@ class Solver:
 
     def commit(self, batch, tally, shot=None) -> None:
         """Receivers keep rho of what arrived; book the batch (``shot``: see ``account``)."""
-        absorbed = deposit(self.patches, tally.received)
+        self.noise.commit(self.patches, tally.hit, tally.received, tally.received_a)
+        before = self.patches.unshot[tally.hit]
+        absorbed = deposit(self.patches, tally.hit, tally.received)
+        self.book_unshot(tally.hit, before)
+        self.pool.touch(tally.hit)
         self.account(batch.power if shot is None else shot, tally, absorbed, self.crossings(batch, tally))
 
     def counted(self, shots: int, rays: int) -> int:
@@ -237,12 +310,38 @@ class Solver:
         if len(idx) == 0:
             return 0
         t0 = time.perf_counter()
-        batch = patch_rays(self.patches, idx, counts, power, self.rng)
+        batch = patch_rays(self.patches, idx, counts, power, self.rng, self.noise.shot_diff(idx, self.patches.area))
         tally = self.fire(batch, t0)
         # Shooters give up what they shot (dB - amount: 0, or -rho*g when overshooting)
-        self.patches.unshot[idx] -= amounts
+        self.release(idx, amounts)
+        self.noise.shot(idx)
         self.commit(batch, tally)
         return self.counted(len(idx), len(batch))
+
+    def gather(self) -> int:
+        """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.
+
+        The emitters' unshot power is spent, receivers keep rho of what the gather
+        says arrives (booked like a batch), and shooting goes on with the reflected light.
+        """
+        p = self.patches
+        cfg = self.config
+        emitters = np.flatnonzero(p.emission.any(axis=1) & p.unshot.any(axis=1))
+        if len(emitters) == 0:
+            return 0
+        amounts = p.unshot[emitters].copy()
+        power = amounts * p.area[emitters, None]
+        shadow = cfg.shadow_rays or shadow_rays_for(cfg.accuracy if cfg.accuracy > 0 else 0.05)
+        t0 = time.perf_counter()
+        tally = gather_direct(p, self.tracer, emitters, power, shadow, self.rng, ray_offset(p), cfg.batch_rays)
+        self.stats.trace_seconds += time.perf_counter() - t0
+        self.release(emitters, amounts)
+        self.noise.shot(emitters)
+        self.commit(None, tally, shot=power)
+        self.choices.append(f"direct light gathered with {shadow} shadow rays per receiving patch (next-event "
+                            f"estimation); {float(tally.escaped.sum()):.6g} W of the emitted power that by "
+                            f"the gather's estimate lands on no front face is booked as escaped")
+        return self.counted(len(emitters), tally.rays)
 
     # == the loop ==================================================================
     def elapsed(self) -> float:
@@ -251,18 +350,33 @@ class Solver:
     def residual(self) -> float:
         return self.ledger.residual()
 
+    def estimate(self) -> Estimate:
+        """The estimated RMS error of B now: noise and unshot bias (noise.py); O(1)."""
+        led = self.ledger
+        held = np.maximum(led.unshot_abs, np.abs(led.unshot)) + np.maximum(led.in_flight_abs, np.abs(led.in_flight))
+        p = self.patches
+        return combine(self.noise.sums(), bias_ambient(self.tallies, held, p.total_area, p.mean_rho))
+
     def snapshot(self, force: bool = False) -> None:
         """Record a snapshot when the ray count passed the next geometric mark."""
         if not force and self.stats.rays < self._next_snapshot:
             return
         if self.snapshots and self.snapshots[-1].rays == self.stats.rays:
             return
+        self.noise.resync(self.patches)
+        est = self.estimate()
         self.snapshots.append(
-            Snapshot(self.elapsed(), self.stats.shots, self.stats.rays, self.residual(), self.ledger.closure())
+            Snapshot(self.elapsed(), self.stats.shots, self.stats.rays, self.residual(), self.ledger.closure(),
+                     finite(est.rms), finite(est.rms_refl))
         )
-        self.snapshot_B.append(self.patches.radiosity.astype(np.float32))
+        self.snapshot_B.append(self.patches.radiosity)
+        cap = self.config.snapshot_mb * 2**20
+        if isinstance(self.snapshot_B, SnapshotStore) and self.snapshot_B.nbytes > cap and len(self.snapshots) > 2:
+            keep = self.snapshot_B.thin()
+            self.snapshots = [self.snapshots[i] for i in keep]
+            self._snapshot_factor *= self._snapshot_factor
         first = max(self.config.min_rays, 1024)
-        self._next_snapshot = max(first, int(math.ceil(self.stats.rays * self.config.snapshot_factor)))
+        self._next_snapshot = max(first, int(math.ceil(self.stats.rays * self._snapshot_factor)))
 
     def stop_reason(self) -> str:
         cfg = self.config
@@ -270,6 +384,12 @@ class Solver:
             return "no_emitters"
         if self.residual() <= cfg.tol:
             return "tolerance"
+        if by_accuracy(cfg):
+            est = self.estimate()
+            if est.rms_refl <= cfg.accuracy:
+                return "accuracy"
+            if noise_floor(est, cfg.accuracy):
+                return "noise_floor"
         if cfg.time_limit and self.elapsed() >= cfg.time_limit:
             return "time_limit"
         if cfg.max_rays and self.stats.rays >= cfg.max_rays:
@@ -282,7 +402,14 @@ class Solver:
         on_progress(solver) is called after every batch.
         """
         self._t0 = time.perf_counter() - self.stats.wall_seconds
+        self.pool.invalidate()  # the table may have changed since the last run
+        self.recount()
         self.snapshot(force=True)
+        if self.config.direct and self.stats.shots == 0 and not (should_stop is not None and should_stop()):
+            self.gather()
+            self.snapshot()
+            if on_progress is not None:
+                on_progress(self)
         while True:
             reason = self.stop_reason()
             if not reason and should_stop is not None and should_stop():
@@ -295,21 +422,12 @@ class Solver:
             self.snapshot()
             if on_progress is not None:
                 on_progress(self)
+        self.recount()
         self.snapshot(force=True)
         self.stats.stopped_by = reason
         self.choices = [c for c in self.choices if not c.startswith("stiff scene")] + self.stiffness_choice()
         self.stats.wall_seconds = self.elapsed()
         return self.stats
-
-    def adopt_divided(self, run, trace_seconds: float = 0.0) -> None:
-        """Take over a divided run's ledger, counters and snapshots (B already in patches)."""
-        self.ledger = run.ledger
-        self.snapshots = list(run.snapshots)
-        self.snapshot_B = list(run.snapshot_B)
-        last = run.snapshots[-1]
-        self.stats.shots, self.stats.rays, self.stats.batches = last.shots, last.rays, run.barriers
-        self.stats.wall_seconds, self.stats.stopped_by = run.wall_seconds, run.stopped_by
-        self.stats.trace_seconds = float(trace_seconds)
 
     # == reporting =================================================================
     def eta(self) -> float:
@@ -325,18 +443,9 @@ class Solver:
         return max(0.0, math.log(now / max(self.config.tol, 1e-300)) / rate)
 
     def warnings(self) -> list[str]:
-        """Warnings about the run: flipped normals (back-face share of shot power)."""
-        out = []
-        shot = float(self.ledger.emitted.sum() - self.ledger.unshot.sum())
-        back = float(self.ledger.back_faces.sum())
-        if shot > 0 and back / shot > TOL.backface_warn:
-            order = np.argsort(-self.back_by_obj)
-            worst = [self.patches.names[i] for i in order[:5] if self.back_by_obj[i] > 0 and i < len(self.patches.names)]
-            out.append(
-                f"{100 * back / shot:.1f}% of the shot power hit back faces; normals are probably "
-                f"flipped on: {', '.join(worst)}"
-            )
-        return out
+        """Warnings about the run: flipped normals (back-face share of shot power), escaped light."""
+        return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
+                                                                                                  self.patches)
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ import dataclasses
 import pytest
 
 from dcrad.cli import build_parser
-from dcrad.config import DivideConfig, SolverConfig
+from dcrad.config import BOUNDARY_MODES, DivideConfig, SolverConfig
 from dcrad.errors import ConfigError
 from dcrad.settings import divide_from_args, from_args, from_pb, missing_on_wire, to_argv, to_pb
 from dcrad.v1 import dcrad_pb2 as pb
@@ -29,7 +29,7 @@ def _other_value(cls, f: dataclasses.Field):
     elif isinstance(d, float):
         tries = [d * 1.5 + 0.25, d * 0.5, 0.0]
     elif isinstance(d, str):
-        tries = ["exact" if d == "binned" else d + "x"]
+        tries = [*BOUNDARY_MODES, d + "x"]
     else:
         raise AssertionError(f"{cls.__name__}.{f.name}: settings must be bool, int, float or str, not {type(d)}")
     for v in tries:
@@ -83,11 +83,11 @@ def test_an_empty_message_means_the_defaults_and_explicit_zero_stays_zero():
 def test_a_dataclass_field_without_a_proto_twin_is_refused_by_name():
     @dataclasses.dataclass(frozen=True)
     class Grown(SolverConfig):
-        accuracy: float = 0.1
+        new_knob: float = 0.1
 
-    with pytest.raises(ConfigError, match="lacks accuracy"):
+    with pytest.raises(ConfigError, match="lacks new_knob"):
         to_pb(Grown(), pb.SolverSettings)
-    assert missing_on_wire(Grown, pb.SolverSettings) == ["accuracy"]
+    assert missing_on_wire(Grown, pb.SolverSettings) == ["new_knob"]
 
 
 def test_invalid_values_from_the_wire_name_the_setting():

@@ -37,7 +37,10 @@ def status_of(key: pb.SubsceneKey, sub: Subscene, compute_s: float = 0.0) -> pb.
     return pb.SubsceneStatus(key=key, ledger=ledger_to_pb(st.ledger), shots=st.shots, rays=st.rays,
                              twin_entries=st.twin_entries, twin_bytes=st.twin_bytes, compute_s=compute_s,
                              area=st.area, return_tallies=[float(x) for x in st.tallies.ravel()],
-                             twins_delivered=st.twins_delivered, twin_blocks=st.twin_blocks)
+                             twins_delivered=st.twins_delivered, twin_blocks=st.twin_blocks,
+                             batches=st.batches, trace_s=st.trace_seconds,
+                             back_by_obj=[float(x) for x in st.back_by_obj],
+                             noise=st.noise.as_list() if st.noise is not None else [])
 
 
 async def read_stream(request_iterator, head: str):

@@ -63,7 +63,7 @@ class Ledger(_message.Message):
     def __init__(self, emitted: _Optional[_Iterable[float]] = ..., absorbed: _Optional[_Iterable[float]] = ..., escaped: _Optional[_Iterable[float]] = ..., back_faces: _Optional[_Iterable[float]] = ..., unshot: _Optional[_Iterable[float]] = ..., in_flight: _Optional[_Iterable[float]] = ..., imported: _Optional[_Iterable[float]] = ..., exported: _Optional[_Iterable[float]] = ..., closure: _Optional[float] = ..., residual: _Optional[float] = ..., unshot_abs: _Optional[_Iterable[float]] = ..., in_flight_abs: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SolverSettings(_message.Message):
-    __slots__ = ("tol", "time_limit", "max_rays", "seed", "rays_per_power", "patch_size", "scale", "min_rays", "max_rays_per_shot", "batch_rays", "max_shooters", "snapshot_factor", "overshoot", "overshoot_min_return", "stiff_rays", "adaptive_bins")
+    __slots__ = ("tol", "time_limit", "max_rays", "seed", "rays_per_power", "patch_size", "scale", "min_rays", "max_rays_per_shot", "batch_rays", "max_shooters", "snapshot_factor", "overshoot", "overshoot_min_return", "stiff_rays", "adaptive_bins", "snapshot_mb", "accuracy", "direct", "shadow_rays", "up", "two_sided", "workplane")
     TOL_FIELD_NUMBER: _ClassVar[int]
     TIME_LIMIT_FIELD_NUMBER: _ClassVar[int]
     MAX_RAYS_FIELD_NUMBER: _ClassVar[int]
@@ -80,6 +80,13 @@ class SolverSettings(_message.Message):
     OVERSHOOT_MIN_RETURN_FIELD_NUMBER: _ClassVar[int]
     STIFF_RAYS_FIELD_NUMBER: _ClassVar[int]
     ADAPTIVE_BINS_FIELD_NUMBER: _ClassVar[int]
+    SNAPSHOT_MB_FIELD_NUMBER: _ClassVar[int]
+    ACCURACY_FIELD_NUMBER: _ClassVar[int]
+    DIRECT_FIELD_NUMBER: _ClassVar[int]
+    SHADOW_RAYS_FIELD_NUMBER: _ClassVar[int]
+    UP_FIELD_NUMBER: _ClassVar[int]
+    TWO_SIDED_FIELD_NUMBER: _ClassVar[int]
+    WORKPLANE_FIELD_NUMBER: _ClassVar[int]
     tol: float
     time_limit: float
     max_rays: int
@@ -96,7 +103,14 @@ class SolverSettings(_message.Message):
     overshoot_min_return: float
     stiff_rays: bool
     adaptive_bins: bool
-    def __init__(self, tol: _Optional[float] = ..., time_limit: _Optional[float] = ..., max_rays: _Optional[int] = ..., seed: _Optional[int] = ..., rays_per_power: _Optional[float] = ..., patch_size: _Optional[float] = ..., scale: _Optional[float] = ..., min_rays: _Optional[int] = ..., max_rays_per_shot: _Optional[int] = ..., batch_rays: _Optional[int] = ..., max_shooters: _Optional[int] = ..., snapshot_factor: _Optional[float] = ..., overshoot: _Optional[float] = ..., overshoot_min_return: _Optional[float] = ..., stiff_rays: _Optional[bool] = ..., adaptive_bins: _Optional[bool] = ...) -> None: ...
+    snapshot_mb: float
+    accuracy: float
+    direct: bool
+    shadow_rays: int
+    up: str
+    two_sided: bool
+    workplane: float
+    def __init__(self, tol: _Optional[float] = ..., time_limit: _Optional[float] = ..., max_rays: _Optional[int] = ..., seed: _Optional[int] = ..., rays_per_power: _Optional[float] = ..., patch_size: _Optional[float] = ..., scale: _Optional[float] = ..., min_rays: _Optional[int] = ..., max_rays_per_shot: _Optional[int] = ..., batch_rays: _Optional[int] = ..., max_shooters: _Optional[int] = ..., snapshot_factor: _Optional[float] = ..., overshoot: _Optional[float] = ..., overshoot_min_return: _Optional[float] = ..., stiff_rays: _Optional[bool] = ..., adaptive_bins: _Optional[bool] = ..., snapshot_mb: _Optional[float] = ..., accuracy: _Optional[float] = ..., direct: _Optional[bool] = ..., shadow_rays: _Optional[int] = ..., up: _Optional[str] = ..., two_sided: _Optional[bool] = ..., workplane: _Optional[float] = ...) -> None: ...
 
 class DivideSettings(_message.Message):
     __slots__ = ("subscenes", "iterations", "solid", "cell_size", "mode", "max_iterations")
@@ -191,7 +205,7 @@ class SubsceneProgress(_message.Message):
     def __init__(self, cell: _Optional[int] = ..., worker: _Optional[str] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., residual: _Optional[float] = ..., twin_bytes: _Optional[int] = ..., reassigned: _Optional[int] = ...) -> None: ...
 
 class Progress(_message.Message):
-    __slots__ = ("job", "barrier", "shots", "rays", "rms_estimate", "ledger", "subscenes", "bytes_relayed")
+    __slots__ = ("job", "barrier", "shots", "rays", "rms_estimate", "ledger", "subscenes", "bytes_relayed", "error", "accuracy")
     JOB_FIELD_NUMBER: _ClassVar[int]
     BARRIER_FIELD_NUMBER: _ClassVar[int]
     SHOTS_FIELD_NUMBER: _ClassVar[int]
@@ -200,6 +214,8 @@ class Progress(_message.Message):
     LEDGER_FIELD_NUMBER: _ClassVar[int]
     SUBSCENES_FIELD_NUMBER: _ClassVar[int]
     BYTES_RELAYED_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    ACCURACY_FIELD_NUMBER: _ClassVar[int]
     job: JobSummary
     barrier: int
     shots: int
@@ -208,7 +224,25 @@ class Progress(_message.Message):
     ledger: Ledger
     subscenes: _containers.RepeatedCompositeFieldContainer[SubsceneProgress]
     bytes_relayed: int
-    def __init__(self, job: _Optional[_Union[JobSummary, _Mapping]] = ..., barrier: _Optional[int] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., rms_estimate: _Optional[float] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., subscenes: _Optional[_Iterable[_Union[SubsceneProgress, _Mapping]]] = ..., bytes_relayed: _Optional[int] = ...) -> None: ...
+    error: ErrorEstimate
+    accuracy: float
+    def __init__(self, job: _Optional[_Union[JobSummary, _Mapping]] = ..., barrier: _Optional[int] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., rms_estimate: _Optional[float] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., subscenes: _Optional[_Iterable[_Union[SubsceneProgress, _Mapping]]] = ..., bytes_relayed: _Optional[int] = ..., error: _Optional[_Union[ErrorEstimate, _Mapping]] = ..., accuracy: _Optional[float] = ...) -> None: ...
+
+class ErrorEstimate(_message.Message):
+    __slots__ = ("rms", "rms_norm", "rms_refl", "noise_refl", "bias_refl", "method")
+    RMS_FIELD_NUMBER: _ClassVar[int]
+    RMS_NORM_FIELD_NUMBER: _ClassVar[int]
+    RMS_REFL_FIELD_NUMBER: _ClassVar[int]
+    NOISE_REFL_FIELD_NUMBER: _ClassVar[int]
+    BIAS_REFL_FIELD_NUMBER: _ClassVar[int]
+    METHOD_FIELD_NUMBER: _ClassVar[int]
+    rms: float
+    rms_norm: float
+    rms_refl: float
+    noise_refl: float
+    bias_refl: float
+    method: str
+    def __init__(self, rms: _Optional[float] = ..., rms_norm: _Optional[float] = ..., rms_refl: _Optional[float] = ..., noise_refl: _Optional[float] = ..., bias_refl: _Optional[float] = ..., method: _Optional[str] = ...) -> None: ...
 
 class WorkerInfo(_message.Message):
     __slots__ = ("address", "capacity", "name", "alive", "load")
@@ -273,7 +307,7 @@ class LoadRequest(_message.Message):
     def __init__(self, header: _Optional[_Union[SubsceneHeader, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...
 
 class SubsceneStatus(_message.Message):
-    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes", "compute_s", "area", "return_tallies", "twins_delivered", "twin_blocks")
+    __slots__ = ("key", "ledger", "shots", "rays", "twin_entries", "twin_bytes", "compute_s", "area", "return_tallies", "twins_delivered", "twin_blocks", "batches", "trace_s", "back_by_obj", "noise")
     KEY_FIELD_NUMBER: _ClassVar[int]
     LEDGER_FIELD_NUMBER: _ClassVar[int]
     SHOTS_FIELD_NUMBER: _ClassVar[int]
@@ -285,6 +319,10 @@ class SubsceneStatus(_message.Message):
     RETURN_TALLIES_FIELD_NUMBER: _ClassVar[int]
     TWINS_DELIVERED_FIELD_NUMBER: _ClassVar[int]
     TWIN_BLOCKS_FIELD_NUMBER: _ClassVar[int]
+    BATCHES_FIELD_NUMBER: _ClassVar[int]
+    TRACE_S_FIELD_NUMBER: _ClassVar[int]
+    BACK_BY_OBJ_FIELD_NUMBER: _ClassVar[int]
+    NOISE_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
     ledger: Ledger
     shots: int
@@ -296,7 +334,11 @@ class SubsceneStatus(_message.Message):
     return_tallies: _containers.RepeatedScalarFieldContainer[float]
     twins_delivered: int
     twin_blocks: int
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ..., compute_s: _Optional[float] = ..., area: _Optional[float] = ..., return_tallies: _Optional[_Iterable[float]] = ..., twins_delivered: _Optional[int] = ..., twin_blocks: _Optional[int] = ...) -> None: ...
+    batches: int
+    trace_s: float
+    back_by_obj: _containers.RepeatedScalarFieldContainer[float]
+    noise: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ..., compute_s: _Optional[float] = ..., area: _Optional[float] = ..., return_tallies: _Optional[_Iterable[float]] = ..., twins_delivered: _Optional[int] = ..., twin_blocks: _Optional[int] = ..., batches: _Optional[int] = ..., trace_s: _Optional[float] = ..., back_by_obj: _Optional[_Iterable[float]] = ..., noise: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class IterateRequest(_message.Message):
     __slots__ = ("key", "batches", "ambient_scale", "ambient_rest", "ray_factor", "return_ratio")
