@@ -22,8 +22,8 @@ import grpc
 
 from dcrad.config import SolverConfig
 from dcrad.errors import DcradError, SceneFormatError
-from dcrad.objfile import inside_folder
-from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args
+from dcrad.objfile import inside_folder, read_mtl
+from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import FileAssembler, file_chunks, safe_relpath
@@ -76,6 +76,19 @@ def _obj_refs(text: str, label: str, folder: str) -> list[str]:
     return refs
 
 
+def _texture_refs(mtllibs: list[str], folder: str) -> list[str]:
+    """The map_Kd images of the material files that exist (a missing one is the loader's warning)."""
+    refs = []
+    for one in mtllibs:
+        full = inside_folder(folder, one, one, "mtllib")
+        if not os.path.isfile(full):
+            continue
+        for mat in read_mtl(full, one, folder).values():
+            refs += [name for key, name in mat.textures if key.lower() == "map_kd"
+                     and os.path.isfile(inside_folder(folder, name, one, "texture"))]
+    return refs
+
+
 def _gltf_refs(blob: bytes, label: str, folder: str) -> list[str]:
     try:
         header = json.loads(blob.decode("utf-8"))
@@ -105,6 +118,7 @@ def scene_files(path) -> dict[str, bytes]:
         raise SceneFormatError(f"cannot read scene file {path}: {exc.strerror or exc}") from None
     if ext == ".obj":
         refs = _obj_refs(main.decode("utf-8", errors="replace"), str(path), folder)
+        refs += _texture_refs(refs, folder)
     elif ext == ".gltf":
         refs = _gltf_refs(main, str(path), folder)
     else:
@@ -303,7 +317,7 @@ def cmd_submit(args) -> int:
     from dcrad.pipeline import resolve_scene
 
     address = resolve_address(args.coordinator)
-    solver = from_args(SolverConfig, args).as_dict() | {"patch_size": args.patch_size, "scale": args.scale}
+    solver = from_args(SolverConfig, args).as_dict() | scene_values(args)
     # subscenes 0 travels as 0: the coordinator makes one per registered worker
     divide = divide_from_args(args, max(args.subscenes, 1)).as_dict() | {"subscenes": args.subscenes}
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
 from .errors import DcradError
-from .settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args
+from .settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
 
 __all__ = ["main"]
 
@@ -96,7 +96,8 @@ def cmd_solve(args) -> int:
             divide = divide_from_args(args, k)
             report = solve_to(path, out, config, patch_size=args.patch_size, scale=args.scale,
                               on_progress=on_progress, should_stop=stop.should_stop,
-                              width=args.width, height=args.height, divide=divide, planes=planes or None)
+                              width=args.width, height=args.height, divide=divide, planes=planes or None,
+                              up=args.up, two_sided=args.two_sided, workplane=args.workplane)
     finally:
         signal.signal(signal.SIGINT, previous)
     bar.update(report["residual"], report["stats"]["rays"], report["stats"]["wall_seconds"], 0.0, final=True)
@@ -161,11 +162,11 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
         # a bad scene fails here, naming the user's own file, before any process starts
         from .scene import load_scene
 
-        load_scene(path, scale=args.scale)
+        load_scene(path, scale=args.scale, up=args.up, two_sided=args.two_sided)
         client.scene_files(path)
         with LocalCluster(workers=args.workers) as cluster:
             print(f"dcrad: coordinator {cluster.address} with {args.workers} local workers", file=sys.stderr)
-            solver = config.as_dict() | {"patch_size": args.patch_size, "scale": args.scale}
+            solver = config.as_dict() | scene_values(args)
             divide = divide_from_args(args, args.subscenes or args.workers).as_dict()
             try:
                 job = client.submit(cluster.address, path, solver, divide, (args.width, args.height))

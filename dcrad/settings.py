@@ -27,7 +27,7 @@ from google.protobuf.message import Message
 from .config import BOUNDARY_MODES, DivideConfig
 from .errors import ConfigError
 
-__all__ = ["add_flags", "add_scene_flags", "add_divide_flags", "divide_from_args", "from_args", "to_argv", "to_pb", "from_pb", "missing_on_wire", "flag_name"]
+__all__ = ["add_flags", "add_scene_flags", "scene_values", "add_divide_flags", "divide_from_args", "from_args", "to_argv", "to_pb", "from_pb", "missing_on_wire", "flag_name"]
 
 T = TypeVar("T")
 
@@ -63,6 +63,18 @@ def add_scene_flags(parser: argparse.ArgumentParser) -> None:
                         help="largest patch edge in metres (default 0: 1/40 of the scene diagonal)")
     parser.add_argument("--scale", type=float, default=1.0,
                         help="multiply scene coordinates by this (unit conversion to metres)")
+    parser.add_argument("--up", default="auto", choices=("auto", "x", "y", "z", "-x", "-y", "-z"),
+                        help="the scene's up axis (default auto: detected; see README Units and conventions)")
+    parser.add_argument("--two-sided", action="store_true",
+                        help="every surface receives and reflects light on both sides")
+    parser.add_argument("--workplane", type=float, default=0.0,
+                        help="height in metres above the floor of a work-plane illuminance grid (default 0: none)")
+
+
+def scene_values(args: argparse.Namespace) -> dict:
+    """The scene flags of ``add_scene_flags`` as SolverSettings fields (patch_size, scale, up, ...)."""
+    return {"patch_size": args.patch_size, "scale": args.scale, "up": "" if args.up == "auto" else args.up,
+            "two_sided": bool(args.two_sided), "workplane": float(args.workplane)}
 
 
 def add_divide_flags(parser: argparse.ArgumentParser, subscenes_help: str) -> None:

@@ -91,7 +91,7 @@ def variant(src, folder, up: str = "z", flip: float = 0.0, texture: bool = False
         # planar UVs (1 m tiles) from the two horizontal coordinates of the Y-up original
         back = np.array(verts) @ rot
         uv = back[:, [0, 2]] + 0.5 * back[:, [1, 1]]
-        out_lines = out_lines[:1] + [f"vt {u!r} {v!r}" for u, v in uv] + out_lines[1:]
+        out_lines = out_lines[:1] + [f"vt {float(u)!r} {float(v)!r}" for u, v in uv] + out_lines[1:]
     (folder / f"{stem}.obj").write_text("\n".join(out_lines) + "\n")
     if texture:
         write_checker(folder / "checker.png", *CHECKER_LINEAR)

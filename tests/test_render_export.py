@@ -358,3 +358,74 @@ def test_corner_radiosity_matches_brute_force():
                     num += area[r] * p.radiosity[r]
                     den += area[r]
             assert np.allclose(cv[q, k], num / den)
+
+
+# -- photometry (issue 15) --------------------------------------------------------------------
+def test_lux_of_one_patch_is_the_hand_computation():
+    """One patch, rho 0.5 grey, B = 10 W/m^2, E = 0: H = (B - E) / rho = 20 W/m^2, and with
+    179 lm/W and Y weights summing to 1 for grey, E_v = 3580 lux; L = 179 * 10 / pi cd/m^2."""
+    from dcrad import photometry
+
+    p = Patches(vertices=[[0, 0, 0], [2, 0, 0], [0, 0, -1]], faces=[[0, 1, 2]], rho=np.full((1, 3), 0.5),
+                emission=np.zeros((1, 3)), source=[0], obj=[0], names=["desk/oak"],
+                radiosity=np.full((1, 3), 10.0))
+    h, gathered = photometry.irradiance(p)
+    np.testing.assert_allclose(h, [[20.0, 20.0, 20.0]])
+    assert not gathered.any()
+    lux = photometry.to_lux(h)
+    np.testing.assert_allclose(lux, [3580.0])
+    (entry,) = photometry.surface_stats(p, lux)
+    assert entry["name"] == "desk" and entry["area_m2"] == pytest.approx(1.0)
+    assert entry["E_avg_lux"] == pytest.approx(3580.0) and entry["E_min_lux"] == pytest.approx(3580.0)
+    assert entry["E_max_lux"] == pytest.approx(3580.0) and entry["uniformity"] == pytest.approx(1.0)
+    assert entry["L_avg_cd_m2"] == pytest.approx(179.0 * 10.0 / math.pi)
+    # coloured: E_v weighs the channels by CIE Y
+    p.radiosity = np.array([[2.0, 4.0, 8.0]])
+    np.testing.assert_allclose(photometry.to_lux(photometry.irradiance(p)[0]),
+                               [179.0 * (0.2126 * 4 + 0.7152 * 8 + 0.0722 * 16)])
+
+
+def test_black_patch_and_work_plane_are_gathered_from_the_solution():
+    """Closed box whose every wall has B = 3 W/m^2: whatever direction a gather ray takes it
+    sees B = 3, so a black floor (rho 0: B says nothing) and a work plane get H = 3 exactly."""
+    from dcrad import photometry
+
+    p = _box(open_front=False)
+    rho = np.full((12, 3), 0.5)
+    rho[:2] = 0.0  # the floor
+    p = Patches(vertices=p.vertices, faces=p.faces[:-2], rho=rho, emission=np.zeros((12, 3)),
+                source=np.arange(12), obj=np.repeat(np.arange(6), 2), names=[f"default/w{i}" for i in range(6)],
+                radiosity=np.full((12, 3), 3.0))
+    h, gathered = photometry.irradiance(p)
+    assert gathered.tolist() == [True, True] + [False] * 10
+    np.testing.assert_allclose(h[:2], 3.0, rtol=1e-12)
+    np.testing.assert_allclose(h[2:], 6.0)  # (B - E) / rho
+    wp = photometry.workplane(p, 0.5, spacing=0.25)
+    assert wp["n_points"] == 16
+    np.testing.assert_allclose(wp["lux"], 179.0 * 3.0, rtol=1e-12)
+    assert wp["uniformity"] == pytest.approx(1.0)
+    names = [e["name"] for e in photometry.surface_stats(p, photometry.to_lux(h))]
+    assert names == [f"w{i}" for i in range(6)]  # unnamed objects: by material
+
+
+def test_false_colour_image_has_its_legend():
+    from dcrad import photometry
+    from dcrad.render import tonemap
+
+    h, w = 120, 160
+    value = np.full((h, w), 250.0)
+    front = np.ones((h, w))
+    front[:, :20] = 0.0  # nothing there: black
+    img = photometry.false_colour(value, front, np.zeros((h, w)), top=500.0, legend_width=110)
+    assert img.shape == (h, w + 110, 3) and img.dtype == np.uint8
+    enc = lambda c: tonemap(np.asarray(c, np.float64)[None], exposure=1.0)[0]  # noqa: E731
+    assert np.all(img[60, 80] == enc(photometry.colour_map(0.5)))
+    assert np.all(img[60, 5] == 0)
+    bar = img[:, w + 10 : w + 34]
+    assert np.abs(bar[20, 12].astype(int) - enc(photometry.colour_map(1.0))).max() <= 3  # top: 500
+    assert np.abs(bar[h - 21, 12].astype(int) - enc(photometry.colour_map(0.0))).max() <= 3  # bottom: 0
+    labels = img[:, w + 40 :]
+    bright = labels.min(axis=2) > 200  # white text
+    rows = np.flatnonzero(bright.any(axis=1))
+    assert len(rows) > 20 and rows.min() < 30 and rows.max() > h - 30  # labels at top and bottom ticks
+    assert photometry.legend_scale(np.array([10.0, 420.0]), np.ones(2)) == 500.0
