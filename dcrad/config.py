@@ -23,6 +23,8 @@ class Tolerances:
     ledger: float = 1e-9
     #: back-face share of shot power above which we warn about flipped normals
     backface_warn: float = 0.05
+    #: escaped share of the shot power above which we warn (lights facing away, an open scene)
+    escape_warn: float = 0.5
 
 
 TOL = Tolerances()
@@ -57,15 +59,26 @@ class SolverConfig:
     """
 
     seed: int = setting(0, "seed of every random stream in a run")
-    tol: float = setting(0.01, "stop when the residual (unshot + in flight) / emitted falls to this")
+    accuracy: float = setting(0.02, "target estimated RMS error over RMS of the reflected light B - E: the "
+                                    "solver chooses the ray density and stops when its estimate meets it "
+                                    "(used while --tol is 0; see dcrad/accuracy.py)")
+    direct: bool = setting(True, "gather the direct light with shadow rays from every patch to the emitters "
+                                 "(next-event estimation) before shooting the reflected light; single-subscene "
+                                 "runs (dcrad/direct.py)")
+    shadow_rays: int = setting(0, "shadow rays per receiving patch for the direct light (0: from --accuracy)")
+    tol: float = setting(0.0, "expert: stop when the residual (unshot + in flight) / emitted falls to this "
+                              "instead of by --accuracy (0: by --accuracy; 0.01 when --accuracy is 0 too)")
     time_limit: float = setting(0.0, "stop after this many wall seconds (0: none)")
     max_rays: int = setting(0, "stop after this many rays in all (0: none)")
-    rays_per_power: float = setting(2e5, "rays for shooting the emitted power once; sets the power per ray")
+    rays_per_power: float = setting(0.0, "expert: rays for shooting the emitted power once, which sets the power "
+                                         "per ray (0: chosen from --accuracy and the patch count; 2e5 with --tol)")
     min_rays: int = setting(32, "fewest rays for one patch shot (M_min)")
     max_rays_per_shot: int = setting(65536, "most rays for one patch shot (M_max)")
     batch_rays: int = setting(262144, "rays per Embree call (the top-K shooters at once)")
     max_shooters: int = setting(4096, "most patches shot in one Embree call (K)")
     snapshot_factor: float = setting(1.25, "snapshots of B at geometric steps of this ratio of rays")
+    snapshot_mb: float = setting(128.0, "MB cap on the snapshots of B kept for the error curve (float16; "
+                                        "past it every other snapshot is dropped)")
     overshoot: float = setting(1.0, "ambient overshooting strength in stiff scenes (0: plain progressive "
                                     "refinement; see solve.py)")
     overshoot_min_return: float = setting(0.85, "overshoot only when the measured return ratio (reflected / "
@@ -83,13 +96,18 @@ class SolverConfig:
         need(0.0 <= self.tol < 1.0 and math.isfinite(self.tol), f"tol={self.tol} must be in [0, 1)")
         need(self.time_limit >= 0, f"time_limit={self.time_limit} must be >= 0")
         need(self.max_rays >= 0, f"max_rays={self.max_rays} must be >= 0")
-        need(self.rays_per_power > 0, f"rays_per_power={self.rays_per_power} must be > 0")
+        need(self.rays_per_power >= 0 and math.isfinite(self.rays_per_power),
+             f"rays_per_power={self.rays_per_power} must be >= 0 (0: automatic)")
+        need(self.shadow_rays >= 0, f"shadow_rays={self.shadow_rays} must be >= 0 (0: automatic)")
+        need(0.0 <= self.accuracy < 1.0 and math.isfinite(self.accuracy),
+             f"accuracy={self.accuracy} must be in [0, 1) (a fraction of the reflected light; 0: off)")
         need(1 <= self.min_rays <= self.max_rays_per_shot,
              f"need 1 <= min_rays ({self.min_rays}) <= max_rays_per_shot ({self.max_rays_per_shot})")
         need(self.batch_rays >= self.max_rays_per_shot,
              f"batch_rays={self.batch_rays} must be >= max_rays_per_shot={self.max_rays_per_shot}")
         need(self.max_shooters >= 1, f"max_shooters={self.max_shooters} must be >= 1")
         need(self.snapshot_factor > 1.0, f"snapshot_factor={self.snapshot_factor} must be > 1")
+        need(self.snapshot_mb > 0, f"snapshot_mb={self.snapshot_mb} must be > 0")
         need(0.0 <= self.overshoot <= 1.0, f"overshoot={self.overshoot} must be in [0, 1]")
         need(0.0 < self.overshoot_min_return < 1.0,
              f"overshoot_min_return={self.overshoot_min_return} must be in (0, 1)")
@@ -120,7 +138,8 @@ class DivideConfig:
     max_iterations: int = setting(64, "most batches per subscene between barriers when adaptive")
     solid: int = setting(8, "direction bins per side of a portal cell: SOLIDANGLES = solid^2")
     cell_size: float = setting(0.0, "portal cell edge in m (0: 1/128 of the scene diagonal)")
-    mode: str = setting("binned", "boundary mode: the paper's binned twins, or exact ray forwarding")
+    mode: str = setting("exact", "boundary mode: exact ray forwarding (unbiased at any k), or the paper's "
+                                 "binned twins (biased where a boundary crosses open space)")
 
     @property
     def adaptive(self) -> bool:

@@ -147,6 +147,11 @@ class Patches:
         return self.triangles.mean(axis=1)
 
     @cached_property
+    def scratch(self) -> np.ndarray:
+        """(n,) int32 workspace for ``shoot.compact`` (no meaning between calls; 4 bytes a patch)."""
+        return np.zeros(len(self.faces), np.int32)
+
+    @cached_property
     def n_objects(self) -> int:
         """Number of object ids in use (at least 1): the length of per-object tallies."""
         return max(len(self.names), int(self.obj.max(initial=-1)) + 1, 1)
@@ -195,14 +200,9 @@ class Patches:
             names=self.names,
             radiosity=self.radiosity[index].copy(),
             unshot=self.unshot[index].copy(),
+            twin=remap_twin(self.twin, np.arange(len(self))[index]),
         )
 
-    @property
-    def is_grey(self) -> bool:
-        """True when every rho and E has equal channels (one channel would do)."""
-            twin=remap_twin(self.twin, np.arange(len(self))[index]),
-        return bool(
-            np.all(self.rho == self.rho[:, :1]) and np.all(self.emission == self.emission[:, :1])
     @cached_property
     def is_back(self) -> np.ndarray:
         """(n,) bool: the back side of a two-sided triangle (the later of two twins)."""
@@ -213,4 +213,9 @@ class Patches:
         """True when some patch has a twin (its other side): shoot.trace then maps back hits."""
         return bool((self.twin >= 0).any())
 
+    @property
+    def is_grey(self) -> bool:
+        """True when every rho and E has equal channels (one channel would do)."""
+        return bool(
+            np.all(self.rho == self.rho[:, :1]) and np.all(self.emission == self.emission[:, :1])
         )

@@ -18,10 +18,11 @@ import numpy as np
 
 from .config import TOL
 from .patches import Patches
+from .noise import half_mask, split_power
 from .rays import MISS, Tracer
 from .sampling import cosine_hemisphere, lattice, onb
 
-__all__ = ["RayBatch", "Tally", "ray_lattice", "per_ray_power", "patch_rays", "trace", "deposit"]
+__all__ = ["RayBatch", "Tally", "ray_lattice", "per_ray_power", "patch_rays", "compact", "trace", "deposit"]
 
 
 @dataclass
@@ -36,6 +37,8 @@ class RayBatch:
     dirs: np.ndarray
     power: np.ndarray
     shooter: np.ndarray
+    #: (m,) bool, True for rays of half A of their shooter (noise.py); None: not split
+    half: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.origins)
@@ -45,7 +48,8 @@ class RayBatch:
 class Tally:
     """What one batch of rays did.
 
-    received (n,3) W  power arriving on the front of each patch
+    received (k,3) W  power arriving on the front of the patches ``hit`` (k,) i8 (distinct;
+    only patches that were hit have a row, so a tally costs O(rays), not O(patches))
     escaped, back_faces (3,) W
     back_by_obj (n_obj,) W  back-face power by object, for the flipped-normal warning
     portal (k,) i8  indices of rays that hit a primitive >= n (a boundary), with
@@ -58,6 +62,7 @@ class Tally:
     """
 
     received: np.ndarray
+    hit: np.ndarray
     escaped: np.ndarray
     back_faces: np.ndarray
     back_by_obj: np.ndarray
@@ -67,6 +72,8 @@ class Tally:
     landed: np.ndarray
     kept: np.ndarray
     lost: np.ndarray
+    #: (k,3) W of ``received`` that came by rays of half A (noise.py); None: rays not split
+    received_a: np.ndarray | None = None
 
 
 def ray_offset(patches: Patches) -> float:
@@ -74,17 +81,20 @@ def ray_offset(patches: Patches) -> float:
     return TOL.ray_offset * patches.scale
 
 
-def ray_lattice(counts: np.ndarray, rng: np.random.Generator, dtype=np.float64):
+def ray_lattice(counts: np.ndarray, rng: np.random.Generator, dtype=np.float64, halves: bool = False):
     """Stratified 4-D samples for shooters that get ``counts`` (k,) rays each.
 
     Each shooter has its own randomly shifted R4 lattice.  Returns (owner (m,) i8,
-    the shooter of each ray; u (m,4) in [0,1) of ``dtype``).
+    the shooter of each ray; u (m,4) in [0,1) of ``dtype``).  ``halves``: each
+    shooter's first ceil(c/2) rays and the rest are two lattices with independent
+    shifts (the two half-solutions of noise.py).
     """
     k = len(counts)
     owner = np.repeat(np.arange(k), counts)
-    start = np.cumsum(counts) - counts
-    index = np.arange(int(counts.sum())) - np.repeat(start, counts)
-    return owner, lattice(index, np.repeat(rng.random((k, 4)), counts, axis=0), 4, dtype=dtype)
+    sets = np.stack([(counts + 1) // 2, counts // 2], axis=1).ravel() if halves else counts
+    start = np.cumsum(sets) - sets
+    index = np.arange(int(counts.sum())) - np.repeat(start, sets)
+    return owner, lattice(index, np.repeat(rng.random((len(sets), 4)), sets, axis=0), 4, dtype=dtype)
 
 
 def per_ray_power(power: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -98,14 +108,17 @@ def patch_rays(
     counts: np.ndarray,
     power: np.ndarray,
     rng: np.random.Generator,
+    diff: np.ndarray | None = None,
 ) -> RayBatch:
     """Cosine-distributed rays from stratified points of each shooter.
 
-    shooters (k,) i8 patch indices; counts (k,) i8 rays each; power (k,3) W to shoot.
-    Each shooter gets its own randomly shifted 4-D lattice (2 dims position, 2 dims
-    direction), so its rays are stratified over the triangle and the hemisphere.
+    shooters (k,) i8 patch indices; counts (k,) i8 rays each; power (k,3) W to shoot;
+    diff (k,3) W the half-solutions' difference of that power (noise.py; None: 0).
+    Each shooter gets two randomly shifted 4-D lattices (2 dims position, 2 dims
+    direction), one per half, so its rays are stratified over the triangle and the
+    hemisphere and the halves are independent.
     """
-    owner, u = ray_lattice(counts, rng, dtype=np.float32)
+    owner, u = ray_lattice(counts, rng, dtype=np.float32, halves=True)
 
     # Per-shooter geometry, repeated per ray (np.repeat is ~8x faster than a gather)
     faces = patches.faces[shooters]
@@ -126,67 +139,108 @@ def patch_rays(
     # Cosine directions in each shooter's frame (float32: Embree's precision)
     local = cosine_hemisphere(u[:, 2:])
     dirs = np.einsum("mi,mij->mj", local, frames)
-    return RayBatch(origins=origins, dirs=dirs, power=per_ray_power(power, counts), shooter=owner)
+    return RayBatch(origins=origins, dirs=dirs, power=split_power(power, counts, diff), shooter=owner,
+                    half=half_mask(counts, rng))
+
+
+def compact(index: np.ndarray, scratch: np.ndarray):
+    """Distinct values of ``index`` (m,) and each entry's slot among them, in O(m).
+
+    scratch: an int array at least as long as the largest value + 1 (its content
+    does not matter and is overwritten).  Returns (rows (k,) the distinct values
+    in order of last appearance, slot (m,) with ``rows[slot] == index``).  No sort
+    and no pass over the whole scratch array: the cost follows the rays, not the patches.
+    """
+    m = len(index)
+    order = np.arange(m, dtype=scratch.dtype)
+    scratch[index] = order  # the last ray to write a patch speaks for it
+    last = scratch[index]
+    first = last == order
+    slot_of = np.cumsum(first, dtype=np.int64) - 1
+    return index[first], slot_of[last]
 
 
 def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) -> Tally:
     """Trace a batch and tally where its power went (no state is changed).
 
+    The tally is sparse: ``received`` holds one row per patch hit on the front
+    (``hit``), so its cost follows the rays, not the size of the patch table.
     channels=1 (grey scenes: every rho, E and ray power has equal channels) tallies
     the first channel and copies it: the result is the same, one bincount instead of three.
     """
     n = len(patches)
     prim, t = tracer.intersect(batch.origins, batch.dirs)
-    is_patch = (prim != MISS) & (prim < n)
     missed = prim == MISS
-    portal = np.flatnonzero((prim != MISS) & (prim >= n))
+    if tracer.n > n:  # boundary primitives follow the patches (subscenes)
+        portal = np.flatnonzero(~missed & (prim >= n))
+        on_patch = np.flatnonzero(~missed & (prim < n))
+    else:
+        portal = np.zeros(0, np.int64)
+        on_patch = np.flatnonzero(~missed)
 
     # Front or back: the ray travels against the hit patch's normal on the front
-    pidx = np.where(is_patch, prim, 0)
-    facing = np.einsum("ij,ij->i", batch.dirs, patches.normal[pidx])
-    front = is_patch & (facing < 0.0)
-    back = is_patch & ~front
+    rows = prim[on_patch]
+    facing = np.einsum("ij,ij->i", batch.dirs[on_patch], patches.normal[rows])
+    is_front = facing < 0.0
+    if patches.two_sided:  # a two-sided patch met from behind: the ray lands on its back side (twin)
+        twin = patches.twin[rows]
+        flip = ~is_front & (twin >= 0)
+        rows, is_front = np.where(flip, twin, rows), is_front | flip
+    front, back = on_patch[is_front], on_patch[~is_front]
 
-    # Scatter power onto patches, one bincount per channel
-    received = np.empty((n, 3), np.float64)
-    hit = prim[front]
+    # Scatter power onto the patches hit, one bincount per channel over the compact slots
+    hit, slot = compact(rows[is_front], patches.scratch)
+    k = len(hit)
+    power_front = batch.power[front]
+    received = np.empty((k, 3), np.float64)
     for c in range(channels):
-        received[:, c] = np.bincount(hit, weights=batch.power[front, c], minlength=n)
+        received[:, c] = np.bincount(slot, weights=power_front[:, c], minlength=k)
     if channels == 1:
         received[:, 1] = received[:, 0]
         received[:, 2] = received[:, 0]
+    # The same for the rays of half A, when the batch is split (noise.py): one more bincount
+    received_a = None
+    if batch.half is not None:
+        in_a = batch.half[front]
+        received_a = np.empty((k, 3), np.float64)
+        for c in range(channels):
+            received_a[:, c] = np.bincount(slot[in_a], weights=power_front[in_a, c], minlength=k)
+        if channels == 1:
+            received_a[:, 1:] = received_a[:, :1]
 
     # landed/kept per patch, not per ray: a gather of rho per ray cost a quarter of trace
     # time, and only the ratio kept/landed (mean rho where light lands) is used
     magnitude = np.abs(received)
     landed = magnitude.sum(axis=0)
-    kept = (magnitude * patches.rho).sum(axis=0)
-    back_by_obj = np.bincount(
-        patches.obj[prim[back]], weights=batch.power[back].sum(axis=1), minlength=patches.n_objects
-    )
+    kept = (magnitude * patches.rho[hit]).sum(axis=0)
+    power_back = batch.power[back]
+    power_missed = batch.power[missed]
+    back_by_obj = np.bincount(patches.obj[prim[back]], weights=power_back.sum(axis=1), minlength=patches.n_objects)
     return Tally(
         received=received,
-        escaped=batch.power[missed].sum(axis=0),
-        back_faces=batch.power[back].sum(axis=0),
+        hit=hit,
+        escaped=power_missed.sum(axis=0),
+        back_faces=power_back.sum(axis=0),
         back_by_obj=back_by_obj,
         portal=portal,
         portal_prim=prim[portal] - n,
         portal_t=t[portal],
         landed=landed,
         kept=kept,
-        lost=np.abs(batch.power[missed | back]).sum(axis=0),
+        lost=np.abs(power_back).sum(axis=0) + np.abs(power_missed).sum(axis=0),
+        received_a=received_a,
     )
 
 
-def deposit(patches: Patches, received: np.ndarray) -> np.ndarray:
-    """Add received power to B and dB; return the absorbed power (3,) W.
+def deposit(patches: Patches, hit: np.ndarray, received: np.ndarray) -> np.ndarray:
+    """Add received power to B and dB of the patches hit; return the absorbed power (3,) W.
 
-    received (n,3) W.  A patch keeps rho * received as radiosity and unshot
-    radiosity (divided by its area) and absorbs the rest.
+    hit (k,) distinct patch indices, received (k,3) W (``Tally.hit``, ``Tally.received``).
+    A patch keeps rho * received as radiosity and unshot radiosity (divided by its
+    area) and absorbs the rest.  Cost O(k): only the rows hit are touched.
     """
-    hit = np.flatnonzero(received.any(axis=1))
-    reflected = patches.rho[hit] * received[hit]
+    reflected = patches.rho[hit] * received
     gain = reflected / patches.area[hit, None]
     patches.radiosity[hit] += gain
     patches.unshot[hit] += gain
-    return (received[hit] - reflected).sum(axis=0)
+    return (received - reflected).sum(axis=0)
