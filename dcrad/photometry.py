@@ -24,6 +24,7 @@ import math
 import numpy as np
 
 from .rays import MISS, Tracer
+from .render import tonemap
 from .sampling import cosine_hemisphere, lattice, onb, triangle_points
 
 __all__ = [
@@ -143,12 +144,15 @@ def surface_stats(patches, lux: np.ndarray) -> list[dict]:
 
 
 def workplane(patches, height: float, spacing: float | None = None, tracer: Tracer | None = None,
-              rays: int = GATHER_RAYS, seed: int = 0) -> dict:
+              rays: int = GATHER_RAYS, seed: int = 0, border: float | None = None) -> dict:
     """Illuminance on a horizontal grid ``height`` m above the floor (the bottom of the box), facing up.
 
-    ``spacing`` default: the box's larger horizontal extent / 64.  Points that see mostly
-    one-sided surfaces from behind (inside walls and furniture, outside the building) are
-    left out.  Returns {"points" (k,3), "lux" (k,), and the statistics}.
+    ``spacing`` default: the box's larger horizontal extent / 64.  Left out: points
+    closer than ``border`` (default 0.5 m, EN 12464-1's border zone, at most a tenth of
+    the smaller horizontal extent) to a surface along +-X or +-Z (walls, furniture; this
+    also drops points inside them), and points that see mostly one-sided surfaces from
+    behind (inside solids, outside the building).  Returns {"points" (k,3), "lux" (k,),
+    and the statistics}.
     """
     lo, hi = patches.bounds
     ext = hi - lo
@@ -158,11 +162,18 @@ def workplane(patches, height: float, spacing: float | None = None, tracer: Trac
     xx, zz = np.meshgrid(xs, zs)
     pts = np.stack([xx.ravel(), np.full(xx.size, lo[1] + height), zz.ravel()], axis=1)
     tracer = tracer or Tracer(patches.triangles)
+    border = min(0.5, 0.1 * min(ext[0], ext[2])) if border is None else border
+    near = np.zeros(len(pts), bool)
+    for d in ([1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0]):
+        prim, t = tracer.intersect(pts, np.broadcast_to(np.array(d), pts.shape).copy())
+        near |= (prim != MISS) & (t < border)
+    pts = pts[~near]
     up = np.broadcast_to(np.array([0.0, 1.0, 0.0]), pts.shape).copy()
     h, lost = _gather(patches, tracer, pts, up, rays, seed)
     keep = lost < 0.5
     lux = to_lux(h[keep])
-    return {"height_m": float(height), "spacing_m": float(spacing), "points": pts[keep], "lux": lux,
+    return {"height_m": float(height), "spacing_m": float(spacing), "border_m": float(border),
+            "points": pts[keep], "lux": lux,
             "n_points": int(keep.sum()), **stats(lux)}
 
 
@@ -181,8 +192,8 @@ def colour_map(x: np.ndarray) -> np.ndarray:
 
 
 def legend_scale(lux: np.ndarray, area: np.ndarray) -> float:
-    """Top of the false-colour scale: a round number (1, 2, 2.5, 5 x 10^k) at or above the
-    area-weighted 99th percentile of the values."""
+    """Top of the false-colour scale: a round number (1, 1.5, 2, 2.5, 3, 4, 5, 6, 7.5 x 10^k)
+    at or above the area-weighted 99th percentile of the values."""
     ok = lux > 0
     if not ok.any():
         return 1.0
@@ -190,7 +201,7 @@ def legend_scale(lux: np.ndarray, area: np.ndarray) -> float:
     cum = np.cumsum(area[ok][order])
     top = float(lux[ok][order][min(int(np.searchsorted(cum, 0.99 * cum[-1])), len(cum) - 1)])
     k = 10.0 ** math.floor(math.log10(top))
-    return next(m * k for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * k >= top * (1 - 1e-12))
+    return next(m * k for m in (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0) if m * k >= top * (1 - 1e-12))
 
 
 def false_colour(value: np.ndarray, front: np.ndarray, back: np.ndarray, top: float,
@@ -202,8 +213,6 @@ def false_colour(value: np.ndarray, front: np.ndarray, back: np.ndarray, top: fl
     (top at the top) with ``ticks`` labels in lux, drawn with OpenImageIO's text renderer.
     """
     import OpenImageIO as oiio
-
-    from .render import tonemap
 
     h, w = value.shape
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -116,13 +116,18 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
 
     out.mkdir(parents=True, exist_ok=True)
     written = {}
-    corners = render.corner_radiosity(patches)
     exposure = render.scene_exposure(patches)
     tracer = Tracer(patches.triangles)
     h, gathered = photometry.irradiance(patches, tracer)
     lux = photometry.to_lux(h)
+    # one smoothing pass for B and the false colour's channels (lux, front coverage, back coverage)
+    n = len(patches)
+    both = render.corner_radiosity(patches, values=np.column_stack([patches.radiosity, lux, np.ones(n),
+                                                                    np.zeros(n)]))
+    corners, fc_corners = both[..., :3], both[..., 3:]
     grid = photometry.workplane(patches, workplane, tracer=tracer) if workplane > 0 else None
-    extra = {"valid_input": scene.valid, "patch_E_lux": lux, "patch_L_cd_m2": photometry.luminance_cd(patches.radiosity)}
+    extra = {"valid_input": scene.valid, "patch_E_lux": lux,
+             "patch_L_cd_m2": photometry.luminance_cd(patches.radiosity)}
     if grid is not None:
         extra |= {"workplane_points": scene.to_input_frame(grid["points"]), "workplane_lux": grid["lux"]}
     export.write_radiosity_npz(out / "radiosity.npz", patches, len(scene.faces), extra)
@@ -139,11 +144,12 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     export.write_exr(out / "preview.exr", img)
     written["preview_png"] = "preview.png"
     written["preview_exr"] = "preview.exr"
-    view, mask = camera, None
+    view, mask, view_tracer = camera, None, tracer
     if _is_floor_plan(patches):
         view, mask = render.topdown_camera(patches, width, height), render.cutaway_mask(patches)
+        view_tracer = Tracer(patches.triangles[mask])
         img = render.render(patches, view, mask=mask, corner_values=corners, samples=render.SAMPLES,
-                            exposure=exposure)
+                            exposure=exposure, tracer=view_tracer)
         export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure))
         export.write_exr(out / "preview_top.exr", img)
         written["preview_top_png"] = "preview_top.png"
@@ -151,10 +157,8 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     # false colour: lux, front coverage and back coverage as three rendered channels
     lamp = np.any(patches.emission > 0, axis=1)
     top = photometry.legend_scale(lux[~lamp], patches.area[~lamp])
-    values = np.stack([lux, np.ones(len(lux)), np.zeros(len(lux))], axis=1)
-    cv = render.corner_radiosity(patches, values=values)
-    fc = render.render(patches, view, mask=mask, corner_values=cv, samples=render.SAMPLES,
-                       tracer=tracer if mask is None else None, backface_color=(0.0, 0.0, 1.0 / np.pi))
+    fc = render.render(patches, view, mask=mask, corner_values=fc_corners, samples=render.SAMPLES,
+                       tracer=view_tracer, backface_color=(0.0, 0.0, 1.0 / np.pi))
     fc = fc.astype(np.float64) * np.pi
     export.write_png(out / "illuminance.png", photometry.false_colour(fc[..., 0], fc[..., 1], fc[..., 2], top))
     written["illuminance_png"] = "illuminance.png"

@@ -328,15 +328,16 @@ def topdown_camera(patches, width: int = 640, height: int = 480) -> Camera:
 def cutaway_mask(patches) -> np.ndarray:
     """(n,) bool, False for ceilings and ceiling lights, to look in from above.
 
-    Hidden: patches whose normal points down (n_y < -0.7) with centroid in the
-    top 25% of the box height (ceilings, the undersides of light fixtures), and
-    emitters anywhere in that top 25% (lamps hung under the ceiling).
+    Hidden: horizontal patches (|n_y| > 0.7, facing down or, on two-sided or wrongly
+    wound ceilings, up) with centroid in the top 25% of the box height (ceilings,
+    the undersides of light fixtures), and emitters anywhere in that top 25% (lamps
+    hung under the ceiling).
     """
     lo, hi = patches.bounds
     top = patches.centroid[:, 1] >= lo[1] + 0.75 * (hi[1] - lo[1])
-    down = patches.normal[:, 1] < -0.7
+    flat = np.abs(patches.normal[:, 1]) > 0.7
     lamp = np.any(patches.emission > 0, axis=1)
-    return ~(top & (down | lamp))
+    return ~(top & (flat | lamp))
 
 
 # ---------------------------------------------------------------------------------

@@ -36,16 +36,17 @@ triangle (:mod:`dcrad.texture`).
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import math
 import os
 import struct
+import tempfile
 from dataclasses import dataclass, field
 
 import numpy as np
 
-import tempfile
 
 from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
@@ -461,8 +462,6 @@ def _gltf_image(path: str, header: dict, material: dict, where: str, cache: dict
 
 def _gltf_blob(path: str, header: dict, uri, image: dict) -> bytes:
     """Bytes of an embedded glTF image: a data: URI or a buffer view."""
-    import base64
-
     if isinstance(uri, str):
         return base64.b64decode(uri.split(",", 1)[1])
     view = header["bufferViews"][int(image["bufferView"])]

