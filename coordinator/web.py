@@ -36,6 +36,7 @@ from urllib.parse import urlsplit
 import numpy as np
 from aiohttp import web
 
+from dcrad.config import DivideConfig
 from dcrad.v1 import dcrad_pb2 as pb
 
 from .jobs import STATES, TERMINAL, Job, JobManager, solver_config
@@ -93,7 +94,7 @@ def job_dict(job: Job) -> dict:
     s, dv = job.spec, job.spec.divide
     d["settings"] = {"tol": solver_config(s.solver).tol, "time_limit_s": s.solver.time_limit,
                      "max_rays": s.solver.max_rays, "subscenes_asked": dv.subscenes,
-                     "mode": dv.mode or "binned", "iterations": dv.iterations}
+                     "mode": dv.mode or DivideConfig().mode, "iterations": dv.iterations}
     curve = JobManager.curve_dict(job)
     for key in ("estimate", "measured"):
         if curve[key] is not None:

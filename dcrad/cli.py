@@ -19,8 +19,11 @@ import signal
 import sys
 import tempfile
 from pathlib import Path
+from types import SimpleNamespace
 
+from .accuracy import resolve
 from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
+from .progress import error_text
 from .errors import DcradError
 from .settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
 
@@ -67,26 +70,51 @@ class _Interrupt:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        print("\ndcrad: stopping after this batch and writing results (Ctrl-C again to abort)", file=sys.stderr)
+        try:  # after SIGHUP the terminal may be gone
+            print("\ndcrad: stopping after this batch and writing results (Ctrl-C again to abort)", file=sys.stderr)
+        except OSError:
+            pass
 
     def should_stop(self) -> bool:
         return self.requested
+
+
+#: signals that stop a solve like Ctrl-C: `timeout`, `kill` and a closed terminal send the others
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _catch(handler) -> dict:
+    """Install ``handler`` for every STOP_SIGNALS; returns the previous handlers for ``_restore``."""
+    return {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
+
+
+def _restore(previous: dict) -> None:
+    for sig, old in previous.items():
+        signal.signal(sig, old)
 
 
 def cmd_solve(args) -> int:
     from .pipeline import resolve_scene, solve_to
     from .progress import ProgressBar
 
+    from coordinator.embedded import check_workers
+
+    from .errors import ConfigError
+
+    check_workers(args.workers)
+    if args.subscenes < 0:
+        raise ConfigError(f"--subscenes must be >= 1 (or 0: one per worker), not {args.subscenes}")
     config = _config(args)
     out = Path(args.out)
     if args.workers > 0:
         return _solve_embedded(args, config, out)
-    bar = ProgressBar(config.tol, force=args.progress)
+    rules = resolve(config)
+    bar = ProgressBar(rules.tol, force=args.progress, accuracy=rules.accuracy)
     stop = _Interrupt()
-    previous = signal.signal(signal.SIGINT, stop)
+    previous = _catch(stop)
 
     def on_progress(solver):
-        bar.update(solver.residual(), solver.stats.rays, solver.elapsed(), solver.eta())
+        bar.update(solver.residual(), solver.stats.rays, solver.elapsed(), solver.eta(), estimate=solver.estimate())
 
     try:
         with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
@@ -99,8 +127,10 @@ def cmd_solve(args) -> int:
                               width=args.width, height=args.height, divide=divide, planes=planes or None,
                               up=args.up, two_sided=args.two_sided, workplane=args.workplane)
     finally:
-        signal.signal(signal.SIGINT, previous)
-    bar.update(report["residual"], report["stats"]["rays"], report["stats"]["wall_seconds"], 0.0, final=True)
+        _restore(previous)
+    final = SimpleNamespace(**report["error"]) if report.get("error") else None
+    bar.update(report["residual"], report["stats"]["rays"], report["stats"]["wall_seconds"], 0.0, final=True,
+               estimate=final)
     _summary(report, out)
     return 0
 
@@ -141,6 +171,10 @@ def _summary(report: dict, out: Path) -> None:
         f"{st['wall_seconds']:.2f} s ({report['rays_per_second'] / 1e6:.2f} Mrays/s); residual "
         f"{report['residual']:.2e}, stopped by {st['stopped_by']}; ledger closure {report['ledger']['closure']:.1e}"
     )
+    err = report.get("error")
+    if err:
+        print(f"dcrad: {error_text(err['rms_refl'], err['noise_refl'], err['bias_refl'], report['settings'].get('accuracy', 0.0))}"
+              f", {100 * (err['rms_norm'] or 0.0):.2f}% of RMS(B) (estimated, {err['rms']:.3g} W/m^2)")
     print(f"dcrad: wrote {', '.join(report['outputs'].values())}, report.json in {out}")
 
 
@@ -176,7 +210,7 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
                 print(f"dcrad: status page {cluster.web_url}/jobs/{job.job_id} (while this runs)", file=sys.stderr)
             bar = client.WatchBar(config.tol, force=args.progress)
             cancelled = []
-            previous = signal.signal(signal.SIGINT, stop)
+            previous = _catch(stop)
 
             def on_progress(p):
                 bar(p)
@@ -187,7 +221,7 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
             try:
                 last = client.watch(cluster.address, job.job_id, on_progress)
             finally:
-                signal.signal(signal.SIGINT, previous)
+                _restore(previous)
                 bar.close()
             if last is None or last.job.state not in ("done", "cancelled"):
                 raise SolveError(f"job {job.job_id} {last.job.state if last else 'vanished'}: "
@@ -203,9 +237,14 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
 def cmd_scenes(args) -> int:
     import scenes
 
-    if args.name:
-        path = scenes.write_builtin(args.name, Path(args.out))
-        print(path)
+    if args.name:  # the same names as `dcrad solve`, parameters included (office:rows=3,cols=4)
+        from .errors import ConfigError
+        from .pipeline import resolve_scene
+
+        name = args.name.partition(":")[0]
+        if name not in scenes.names():
+            raise ConfigError(f"unknown built-in scene '{name}'; known scenes: {', '.join(scenes.names())}")
+        print(resolve_scene(args.name, Path(args.out)))
         return 0
     for name in scenes.names():
         print(f"{name:10s} {scenes.describe(name)}")
@@ -223,7 +262,10 @@ def _announce(role: str, host: str):
 def cmd_coordinator(args) -> int:
     import asyncio
 
+    from coordinator.embedded import die_with_parent
     from coordinator.server import serve
+
+    die_with_parent()  # a child of `dcrad solve` ends with it
 
     def web_ready(url: str) -> None:
         # machine-readable too: LocalCluster reads the status page's address from it
@@ -240,8 +282,10 @@ def cmd_coordinator(args) -> int:
 def cmd_worker(args) -> int:
     import asyncio
 
+    from coordinator.embedded import die_with_parent
     from worker.server import serve
 
+    die_with_parent()  # a child of `dcrad solve` ends with it
     asyncio.run(serve(port=args.port, host=args.host, coordinator=args.coordinator, advertise=args.advertise,
                       capacity=args.capacity, name=args.name, ready=_announce("worker", args.host)))
     return 0
@@ -303,7 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", help="a scene file or a built-in scene (e.g. office:rows=1,cols=2)")
     p.add_argument("--subscenes", type=_k_list, default=(1, 2, 4, 8),
                    help="comma-separated subscene counts k (default 1,2,4,8; 1 is always included)")
-    p.add_argument("--boundary", dest="mode", choices=BOUNDARY_MODES, default="binned",
+    p.add_argument("--boundary", dest="mode", choices=BOUNDARY_MODES, default=DivideConfig().mode,
                    help="boundary mode of divided runs")
     add_flags(p, DivideConfig, only=("iterations",))
     p.add_argument("--out", default="compare", help="output folder (default ./compare)")

@@ -186,6 +186,7 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
     ``patches`` holds the assembled B.  The report's ``divided`` section is in
     ``books.divided``; the coordinator adds its service figures to it.
     """
+    config = resolve(config, len(patches))  # the settings the run used (ray density, stop rule)
     states = run.states
     last = run.snapshots[-1]
     stats = Stats(shots=last.shots, rays=last.rays, batches=sum(s.batches for s in states),
@@ -209,6 +210,10 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
             choices.append(f"directional resolution where the energy is: {delivered} twin entries "
                            f"arrived, kept as {blocks} direction blocks (light weaker than one ray "
                            f"shares coarser bins)")
+    else:
+        choices.append(f"boundaries forward each crossing ray exactly (no direction bins, which blur light "
+                       f"where a boundary crosses open space): at most {run.max_twin_bytes} bytes of rays "
+                       f"held at a barrier")
     if run.stiff is not None:
         choices.append(stiff_choice(run.stiff, config) + " (for the whole divided job)")
     divided = {"subscenes": len(states), "boundaries": len(boundaries), "barriers": run.barriers,
@@ -217,7 +222,7 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
                else divide.iterations, "solid": divide.solid,
                "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
                "partition": part.as_dict()}
-    choices.append(describe(resolve(config, len(patches))))
+    choices.append(describe(config))
     if run.stopped_by == "noise_floor":
         choices.append(noise_floor_note(run.estimate, config.accuracy))
     return RunBooks(patches, config, run.ledger, stats, list(run.snapshots), list(run.snapshot_B), back,
@@ -255,10 +260,14 @@ class _DividedView:
     def __init__(self, run):
         last = run.snapshots[-1]
         self._last = last
+        self._estimate = run.estimate
         self.stats = Stats(shots=last.shots, rays=last.rays, barriers=run.barriers)
 
     def residual(self):
         return self._last.residual
+
+    def estimate(self):
+        return self._estimate
 
     def elapsed(self):
         return self._last.time
@@ -315,7 +324,8 @@ def solve_to(
         timings = {"load_and_mesh_s": t_load, "setup_s": t_setup, "solve_s": solver.stats.wall_seconds}
         books = RunBooks.of_solver(solver, timings)
 
-    settings = config.as_dict() | scene_settings(scene, size, scale, two_sided, workplane)
+    # the settings as run: automatic ones (ray density, tol) resolved (accuracy.resolve)
+    settings = books.config.as_dict() | scene_settings(scene, size, scale, two_sided, workplane)
     report = finish_run(out, scene, books, settings, width, height)
     for w in report["warnings"]:
         log.warning(w)

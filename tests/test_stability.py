@@ -318,7 +318,7 @@ def test_report_lists_what_was_left_out(tmp_path):
     assert any("grey" in c for c in choices) and any("no twin" in c for c in choices)
     out2 = tmp_path / "out2"
     r = subprocess.run([sys.executable, "-m", "dcrad.cli", "solve", "cornell", "--workers", "0", "--subscenes", "2",
-                        "--out", str(out2), "--width", "40", "--height", "30", "--tol", "0.05"],
+                        "--boundary", "binned", "--out", str(out2), "--width", "40", "--height", "30", "--tol", "0.05"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     choices = json.loads((out2 / "report.json").read_text())["choices"]
