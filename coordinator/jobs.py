@@ -29,15 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
+from dcrad.accuracy import resolve
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, assemble, build_subscenes, check_subscenes, subscene_limit
+from dcrad.divide import DivideConfig, assemble, check_subscenes, subscene_limit, subscene_specs
 from dcrad.energy import rms_error
 from dcrad.errors import DcradError
 from dcrad.pipeline import _is_floor_plan, divided_books, finish_run, prepare, scene_settings
 from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
 from dcrad.v1 import dcrad_pb2 as pb
-from dcrad.wire import ledger_to_pb
+from dcrad.wire import estimate_to_pb, ledger_to_pb
 
 from .remote import NoWorkers, RemoteSubscene, WorkerPool
 from .store import CheckpointWriter, JobRecord, JobStore, Resume
@@ -48,13 +49,18 @@ TERMINAL = {"done", "failed", "cancelled"}
 STATES = ("queued", "running", "done", "failed", "cancelled")
 
 
+#: live previews take at most this share of the job's wall time (they render beside the workers)
+PREVIEW_SHARE = 0.02
+
+
 class LivePreview:
     """Preview PNGs of the assembled radiosity, for the status page.
 
-    ``due()`` is true at most once per ``interval`` seconds; the job renders at a
-    barrier only when it is due, so previews come once per barrier or once per
-    interval, whichever is rarer (and once more for the final state).  Runs in the
-    job thread.  ``current`` is (version, barrier, png bytes), replaced atomically;
+    ``due()`` is true at most once per ``interval`` seconds, and only after
+    ``1 / PREVIEW_SHARE`` times the last render's duration (a 4 s render of a
+    million patches waits 200 s), so previews cost at most 2% of the solve's wall
+    time; one more shows the final state.  Renders run in the job's
+    ``BarrierDisplay`` thread, never in the barrier loop.  ``current`` is (version, barrier, png bytes), replaced atomically;
     version 0 means no preview yet.  A failing render is logged and turns
     previews off; it never fails the job.
     """
@@ -65,6 +71,7 @@ class LivePreview:
         self.current: tuple[int, int, bytes] = (0, -1, b"")
         self.seconds = 0.0  #: total render time
         self._last = -math.inf
+        self._cost = 0.0  # s the last render took
         self._view = None  # (camera, mask, tracer), built on first use
         self._broken = False
 
@@ -78,7 +85,8 @@ class LivePreview:
         self._broken = True
 
     def due(self) -> bool:
-        return not self._broken and time.monotonic() - self._last >= self.interval
+        wait = max(self.interval, self._cost / PREVIEW_SHARE)
+        return not self._broken and time.monotonic() - self._last >= wait
 
     def _setup(self):
         from dcrad import render
@@ -113,8 +121,59 @@ class LivePreview:
         except Exception:  # a preview must never stop a solve
             self._broken = True
             log.warning("preview rendering failed; no more previews for this job\n%s", traceback.format_exc())
-        self.seconds += time.perf_counter() - t0
+        self._cost = time.perf_counter() - t0
+        self.seconds += self._cost
         self._last = time.monotonic()
+
+
+class BarrierDisplay:
+    """What the status page shows, kept off the barrier loop: assemble B, record the error
+    curve, render previews.
+
+    ``offer`` (in the job thread, at a barrier) only stores the latest state and
+    returns; a daemon thread does the work.  States it had no time for are skipped:
+    the curve keeps geometrically spaced times and previews are rate-limited anyway.
+    ``close`` finishes the pending state and ends the thread.
+    """
+
+    def __init__(self, assemble_b, curve: "ErrorCurve", preview: LivePreview, count):
+        self.assemble_b, self.curve, self.preview, self.count = assemble_b, curve, preview, count
+        self.seconds = 0.0  #: s of display work (assembly, curve, previews)
+        self._slot = None
+        self._closed = False
+        self._cv = threading.Condition()
+        self._thread = threading.Thread(target=self._loop, name="barrier-display", daemon=True)
+        self._thread.start()
+
+    def offer(self, elapsed: float, barrier: int, values: np.ndarray) -> None:
+        """values: the subscenes' radiosity at this barrier, concatenated (a copy the thread owns)."""
+        with self._cv:
+            self._slot = (elapsed, barrier, values)
+            self._cv.notify()
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._slot is not None or self._closed)
+                if self._slot is None:
+                    return
+                (elapsed, barrier, values), self._slot = self._slot, None
+            t0 = time.perf_counter()
+            try:
+                b = self.assemble_b(values)
+                self.curve.record(elapsed, barrier, b)
+                if self.preview.due():
+                    self.preview.render(b, barrier)
+                    self.count(previews=1)
+            except Exception:  # the display must never stop a solve
+                log.warning("live display failed at barrier %d\n%s", barrier, traceback.format_exc())
+            self.seconds += time.perf_counter() - t0
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify()
+        self._thread.join()
 
 
 class ErrorCurve:
@@ -374,7 +433,8 @@ class JobManager:
         divide = self._divide(spec, min(live, subscene_limit(len(patches))))  # a small scene: fewer
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
         t0 = time.perf_counter()
-        subs, boundaries, parents, part = build_subscenes(patches, config, divide)
+        # specs (arrays), not Subscenes: the coordinator builds no Embree scene for them
+        subs, boundaries, parents, part = subscene_specs(patches, config, divide)
         job.subscenes = len(subs)
         handles = [RemoteSubscene(job.id, s, self.pool, self.rpc_timeout) for s in subs]
         resume = self._resume_handles(job, handles)
@@ -382,6 +442,7 @@ class JobManager:
         job.divide = dataclasses.asdict(divide)
         self._save(job)
         writer = CheckpointWriter(job.root / "checkpoints")
+        display = None
         try:
             for h in handles:
                 h.place()
@@ -391,23 +452,27 @@ class JobManager:
 
             job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
             done = {"rays": 0, "bytes_relayed": 0}  # counted into the metrics so far
+            piece_area = np.concatenate([p.area for p in pieces])
+            splits = np.cumsum([len(p) for p in pieces])[:-1]
+
+            def assemble_b(values):
+                return assemble(len(patches), patches.area, parents, pieces, np.split(values, splits))
+
+            display = BarrierDisplay(assemble_b, job.curve, job.preview, self.count)
 
             def on_barrier(run):
                 writer.submit(run.barriers, {h.cell: h.checkpoint for h in handles}, time.time() - job.started)
-                values = [h.radiosity() for h in handles]
-                b = assemble(len(patches), patches.area, parents, pieces, values)
+                values = np.concatenate([h.radiosity() for h in handles])  # the display thread's copy
                 job.residual = run.ledger.residual()
                 job.workers = sorted({h.worker.address for h in handles})
-                progress = self._progress(job, run, handles, b, patches.area)
+                # the live estimate over the clipped pieces (same area; no assembly here)
+                progress = self._progress(job, run, handles, values, piece_area)
                 job.updates.append(progress)
-                job.curve.record(progress.job.elapsed_s, run.barriers, b)
+                display.offer(progress.job.elapsed_s, run.barriers, values)
                 now = {"rays": progress.rays, "bytes_relayed": progress.bytes_relayed}
                 self.count(barriers=1, **{k: max(0, now[k] - done[k]) for k in now})
                 done.update(now)
                 job.notify()
-                if job.preview.due():
-                    job.preview.render(b, run.barriers)
-                    self.count(previews=1)
 
             from dcrad.divide import run_divided
 
@@ -416,6 +481,7 @@ class JobManager:
                                   on_barrier=on_barrier, should_stop=job.cancel.is_set,
                                   first_barrier=resume.barrier if resume else 0)
             writer.close()
+            display.close()  # the curve's last states and the pending preview are in
 
             # Results: the same files as `dcrad solve`
             patches.radiosity = assemble(len(patches), patches.area, parents, pieces,
@@ -435,6 +501,7 @@ class JobManager:
                 "compute_seconds": [h.compute_s for h in handles],
                 "rpc_seconds": [h.rpc_seconds for h in handles],
                 "preview_seconds": job.preview.seconds,
+                "display_seconds": display.seconds,
                 "checkpoints": {k: v for k, v in writer.stats.items() if k != "per_barrier"},
             }
             if resume is not None:
@@ -448,6 +515,8 @@ class JobManager:
             job.state = "cancelled" if run.stopped_by == "stopped" else "done"
         finally:
             writer.close()
+            if display is not None:
+                display.close()
             for h in handles:
                 h.drop()
 
@@ -473,7 +542,8 @@ class JobManager:
                 est.append([p.job.elapsed_s, p.rms_estimate, p.barrier])
         measured = job.curve.measured
         return {"unit": "W/m^2", "time": "s since the job started running",
-                "estimate": {"label": "live estimate from the residual (converged solution unknown)",
+                "estimate": {"label": "estimated error: noise from two half-solutions + unshot bias "
+                                      "(converged solution unknown)",
                              "points": est},
                 "measured": None if measured is None else {"label": job.curve.label,
                                                            "points": [list(m) for m in measured]}}
@@ -488,7 +558,10 @@ class JobManager:
             subs.append(pb.SubsceneProgress(cell=h.cell, worker=h.worker.address if h.worker else "",
                                             shots=st.shots, rays=st.rays, residual=res,
                                             twin_bytes=st.twin_bytes, reassigned=h.reassigned))
+        est = run.estimate  # the noise-aware estimate (dcrad.noise), from every subscene's sums
+        rules = resolve(solver_config(job.spec.solver))
         return pb.Progress(job=job.summary(), barrier=run.barriers, shots=snap.shots, rays=snap.rays,
-                           rms_estimate=residual_estimate(snap.residual, b, area),
+                           rms_estimate=float(est.rms) if est is not None else residual_estimate(snap.residual, b, area),
+                           error=estimate_to_pb(est) if est is not None else None, accuracy=rules.accuracy,
                            ledger=ledger_to_pb(run.ledger), subscenes=subs,
                            bytes_relayed=sum(h.bytes_relayed for h in handles))

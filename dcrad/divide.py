@@ -14,33 +14,36 @@ a ray that hits one is recorded in that portal cell's bin for its direction
 subscene's ``sent`` buffer, ``transfer`` turns A->B power into outgoing power
 on side B, and each subscene shoots its outgoing twins like patches, competing
 by power.  ``run_divided`` drives any objects with the handle interface
-(``iterate``, ``collect``, ``deliver``, ``state``), so remote workers can
-replace the local ones without touching the numerics.
+(``SubsceneHandle``: ``iterate``, ``collect``, ``deliver``, ``state``), so remote
+workers (``coordinator.remote.RemoteSubscene``) replace the local ones without
+touching the numerics.  What differs between the boundary modes (binned twins,
+exact rays) lives in one place, ``boundary.MODES``.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
+from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from .boundary import (Boundary, RayParcel, TwinBuffer, coarsen_directions, direction_levels, transfer,
-                       transfer_rays)
-from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
+from .boundary import Boundary, RayParcel, TwinBuffer, boundary_mode, coarsen_directions, direction_levels
+from .config import DivideConfig, SolverConfig
 from .accuracy import by_accuracy, noise_floor, resolve
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .errors import ConfigError
-from .noise import Estimate, NoiseSums, bias_ambient, combine, finite
+from .noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
 from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
 from .solve import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
-    "Subscene", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor", "DivideConfig",
-    "build_subscenes", "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene",
+    "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor", "DivideConfig",
+    "build_subscenes", "subscene_specs", "SubsceneSpec", "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene",
     "boundaries_to_array", "boundaries_from_array", "run_subscenes",
 ]
 
@@ -86,6 +89,38 @@ class SubsceneState:
     noise: NoiseSums | None = None
 
 
+@runtime_checkable
+class SubsceneHandle(Protocol):
+    """What ``run_divided`` drives: one subscene, here (``Subscene``) or on a worker
+    (``coordinator.remote.RemoteSubscene``).
+
+    cell : the subscene's cell id; mode : its boundary mode (``boundary.MODES``)
+    """
+
+    cell: int
+    mode: str
+
+    def iterate(self, n: int, plan: "BarrierPlan | None" = None) -> int:
+        """doIterations: up to n batches with this barrier's plan; the rays traced."""
+        ...
+
+    def collect(self) -> TwinBuffer | RayParcel:
+        """What crossed its boundaries since the last barrier (the mode's buffer)."""
+        ...
+
+    def deliver(self, buffer: TwinBuffer | RayParcel) -> None:
+        """Accept what crossed into it from its neighbours at the barrier."""
+        ...
+
+    def state(self) -> SubsceneState:
+        """Its books now (small: no per-patch arrays)."""
+        ...
+
+    def radiosity(self) -> np.ndarray:
+        """(n,3) B of its clipped patches, as of the last barrier."""
+        ...
+
+
 class Subscene(Solver):
     """Progressive refinement over one cell's patches plus its boundary rectangles.
 
@@ -107,22 +142,19 @@ class Subscene(Solver):
         self.rng = np.random.default_rng([config.seed, cell])
         mc = max((b.n_cells for b in boundaries), default=1)
         mb = max((b.n_bins for b in boundaries), default=1)
-        self.sent = TwinBuffer(mc, mb)  #: recorded crossings, handed over at the barrier
+        self.mode = mode  #: "binned" (the paper's twins) or "exact" (forward whole rays)
+        self.boundary_mode = boundary_mode(mode)  #: what crosses and how (boundary.MODES)
+        #: recorded crossings, handed over at the barrier (TwinBuffer; exact mode: RayParcel)
+        self.sent: TwinBuffer | RayParcel = self.boundary_mode.sent(mc, mb)
         #: power received from neighbours, still to shoot here; its bin is level * n_bins + bin,
         #: a block of 2**level x 2**level bins (``coarsen_directions``)
         self.pending = TwinBuffer(mc, mb * direction_levels(max((b.solid for b in boundaries), default=1)))
-        self.mode = mode  #: "binned" (the paper's twins) or "exact" (forward whole rays)
-        if mode == "exact":
-            self.sent = RayParcel()
-            self.forward = RayParcel()  #: rays from neighbours, continued here unchanged
-        elif mode not in BOUNDARY_MODES:
-            raise ConfigError(f"boundary mode must be one of {', '.join(BOUNDARY_MODES)}, not {mode!r}")
+        self.forward = RayParcel()  #: rays from neighbours, continued here unchanged (exact mode)
         self._offset = ray_offset(patches) if len(patches) else 1e-6
         self.twins_delivered = 0  #: twin entries received from neighbours
         self.twin_blocks = 0  #: what they became after coarsening (see ``deliver``)
         #: this barrier's plan from ``run_divided``: the job's Stiffness and U_rest (see ``ambient``)
         self.plan: BarrierPlan | None = None
-        self._by_id = {b.id: i for i, b in enumerate(self.boundaries)}
         self._solid_of = np.ones(max((b.id for b in self.boundaries), default=0) + 1, np.int64)  #: by boundary id
         for b in self.boundaries:
             self._solid_of[b.id] = b.solid
@@ -188,7 +220,7 @@ class Subscene(Solver):
                         half=self.rng.random(total) < 0.5)
 
     def _held(self) -> list:
-        return [self.sent, self.pending] + ([self.forward] if self.mode == "exact" else [])
+        return [self.sent, self.pending, self.forward]
 
     def _book_in_flight(self) -> None:
         held = self._held()
@@ -217,7 +249,7 @@ class Subscene(Solver):
         self._book_in_flight()
 
     def step(self) -> int:
-        if self.mode == "exact" and len(self.forward):
+        if len(self.forward):
             return self.step_forwarded()
         idx, counts, power, amounts, pending = self.select_all()
         if len(idx) == 0:
@@ -269,10 +301,8 @@ class Subscene(Solver):
             ok = crossing == (0 if b.side_a == self.cell else 1)
             lost += batch.power[r[~ok]].sum(axis=0)
             r, d, pts = r[ok], d[ok], points[sel][ok]
-            if len(r) and self.mode == "exact":
-                self.sent.add(b.id, pts, d, batch.power[r])
-            elif len(r):
-                self.sent.add(np.full(len(r), b.id), crossing[ok], b.cell_of(pts), b.bin_of(d), batch.power[r])
+            if len(r):
+                self.boundary_mode.record(self.sent, b, pts, d, crossing[ok], batch.power[r])
         return lost
 
     # == the handle interface used by run_divided ================================
@@ -285,8 +315,7 @@ class Subscene(Solver):
         this subscene can do now, so it does not count here.
         """
         p = self.patches
-        held = [self.pending] + ([self.forward] if self.mode == "exact" else [])
-        pending = sum(h.total_abs() for h in held).sum()
+        pending = sum(h.total_abs() for h in (self.pending, self.forward)).sum()
         amounts = self.shoot_amounts(self.stiffness())
         return float((np.abs(amounts) * p.area[:, None]).sum() + pending)
 
@@ -313,7 +342,7 @@ class Subscene(Solver):
         for _ in range(n):
             if goal > 0 and self.local_residual() <= goal:
                 break
-            if self.mode == "exact" and len(self.sent) >= cap:
+            if isinstance(self.sent, RayParcel) and len(self.sent) >= cap:
                 break
             r = self.step()
             if r == 0:
@@ -446,12 +475,13 @@ def barrier_plan(states: list[SubsceneState], config: SolverConfig) -> dict:
     return {cell: BarrierPlan(st, total - u) for cell, u in held.items()}
 
 
-def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, iterations: int = 4,
+def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], config: SolverConfig,
+                iterations: int = 4,
                 executor: Executor | None = None, assemble_B=None, on_barrier=None,
                 should_stop=None, first_barrier: int = 0) -> DividedRun:
     """The paper's main loop over subscene handles.
 
-    handles    : objects with iterate(n, plan), collect(), deliver(buffer), state() (Subscene, or remote)
+    handles    : SubsceneHandle objects (Subscene, or coordinator.remote.RemoteSubscene), one mode
     iterations : batches per subscene between two barriers (doIterations' n)
     assemble_B : optional callable () -> (n,3) radiosity of the whole scene, for snapshots
     on_barrier : optional callable (DividedRun) after every barrier
@@ -459,6 +489,10 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
     """
     executor = executor or SequentialExecutor()
     config = resolve(config)  # the stop rule: by the error estimate, or at the residual tol
+    modes = {h.mode for h in handles}
+    if len(modes) != 1:
+        raise ConfigError(f"the subscenes of one job disagree on the boundary mode: {sorted(modes)}")
+    mode = boundary_mode(modes.pop())
     run = DividedRun(ledger=Ledger(), barriers=first_barrier)
     t0 = time.perf_counter()
 
@@ -503,10 +537,9 @@ def run_divided(handles, boundaries: list[Boundary], config: SolverConfig, itera
         list(executor.map(lambda h: h.iterate(iterations, plan.get(h.cell)), handles))
         # transferEnergy at the barrier
         incoming = {h.cell: h.collect() for h in handles}
-        exact = any(isinstance(v, RayParcel) for v in incoming.values())
-        outgoing = (transfer_rays if exact else transfer)(incoming, boundaries)
+        outgoing = mode.transfer(incoming, boundaries)
         for h in handles:
-            h.deliver(outgoing.get(h.cell, RayParcel() if exact else TwinBuffer(1, 1)))
+            h.deliver(outgoing[h.cell] if h.cell in outgoing else mode.empty())
         run.barriers += 1
         led = barrier_snapshot([h.state() for h in handles])
         if on_barrier is not None:
@@ -537,10 +570,40 @@ def check_subscenes(k: int, n_patches: int) -> None:
                           f"use fewer subscenes or a smaller --patch-size")
 
 
-def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig, planes=None, boxes=None):
-    """subDivideScene: partition, clip, make boundaries and one Subscene per cell.
+@dataclass
+class SubsceneSpec:
+    """What a subscene is made of, as arrays: its clipped patches, boundaries and settings.
 
-    Returns (subscenes, boundaries, parents, partition).
+    ``build()`` makes the Subscene (a Solver with its own Embree scene) where it
+    will iterate; ``state()`` is the state it reports before its first iterate.
+    """
+
+    cell: int
+    patches: Patches
+    boundaries: list[Boundary]
+    config: SolverConfig
+    power_per_ray: float
+    mode: str
+    local_target: float = 0.0
+
+    def build(self) -> "Subscene":
+        return Subscene(self.cell, self.patches, self.boundaries, self.config, self.power_per_ray, self.mode,
+                        local_target=self.local_target)
+
+    def state(self) -> SubsceneState:
+        p = self.patches
+        led = Ledger(emitted=p.emitted_power.copy())
+        led.unshot = p.unshot_power.copy()
+        led.unshot_abs = (np.abs(p.unshot) * p.area[:, None]).sum(axis=0)
+        return SubsceneState(self.cell, led, 0, 0, 0, 0, p.total_area, back_by_obj=np.zeros(max(len(p.names), 1)),
+                             noise=NoiseTally(p).sums())
+
+
+def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig, planes=None, boxes=None):
+    """subDivideScene as arrays: partition, clip, make boundaries and one SubsceneSpec per cell.
+
+    No Solver and no Embree scene is built (the coordinator, which traces nothing,
+    sends these to workers).  Returns (specs, boundaries, parents, partition).
     """
     from .boundary import make_boundary
     from .partition import clip, partition
@@ -568,12 +631,21 @@ def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig
                                         cell_size, divide.solid))
     emitted = float(patches.emitted_power.sum())
     per_ray = emitted / config.rays_per_power if emitted > 0 else 1.0
-    subs = []
+    specs = []
     for cell, (sub, _) in zip(part.cells, pieces):
         touching = [b for b in boundaries if cell.id in (b.side_a, b.side_b)]
         target = 0.5 * config.tol * emitted / len(part.cells) if divide.adaptive else 0.0
-        subs.append(Subscene(cell.id, sub, touching, config, per_ray, divide.mode, local_target=target))
-    return subs, boundaries, [par for _, par in pieces], part
+        specs.append(SubsceneSpec(cell.id, sub, touching, config, per_ray, divide.mode, target))
+    return specs, boundaries, [par for _, par in pieces], part
+
+
+def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig, planes=None, boxes=None):
+    """subDivideScene: partition, clip, make boundaries and one Subscene per cell.
+
+    Returns (subscenes, boundaries, parents, partition).
+    """
+    specs, boundaries, parents, part = subscene_specs(patches, config, divide, planes, boxes)
+    return [s.build() for s in specs], boundaries, parents, part
 
 
 def solve_divided(patches: Patches, config: SolverConfig | None = None, divide: DivideConfig | None = None,
@@ -634,21 +706,18 @@ def subscene_arrays(sub: Subscene) -> dict:
             "boundaries": boundaries_to_array(sub.boundaries)}
 
 
+#: the buffers a subscene holds between barriers, saved in checkpoints as NAME_array
+_HELD = ("sent", "pending", "forward")
+
+
 def checkpoint_arrays(sub: Subscene) -> dict:
     """The state that changes while iterating, taken at a barrier (after deliver).
 
     With the RNG state included, a subscene restored from this continues exactly
     as the original would have.
     """
-    import json
-
     led = sub.ledger
-    buf = sub.forward if sub.mode == "exact" else sub.pending
-    held = {f"pending_{k}": np.asarray(v) for k, v in buf.to_arrays().items()}
-    if sub.mode == "exact":
-        held.update({f"sent_{k}": np.asarray(v) for k, v in sub.sent.to_arrays().items()})
-    else:
-        held.update({f"sent_{k}": np.asarray(v) for k, v in sub.sent.to_arrays().items()})
+    held = {f"{name}_{k}": np.asarray(v) for name in _HELD for k, v in getattr(sub, name).to_arrays().items()}
     rng = json.dumps(sub.rng.bit_generator.state).encode()
     return {
         "radiosity": sub.patches.radiosity, "unshot": sub.patches.unshot,
@@ -659,6 +728,9 @@ def checkpoint_arrays(sub: Subscene) -> dict:
         "trace_seconds": np.array([sub.stats.trace_seconds]),
         "back_by_obj": sub.back_by_obj,
         "rng_state": np.frombuffer(rng, np.uint8),
+        # the error estimate's half-solution difference: it also splits each shot's power
+        "noise_diff": sub.noise.diff, "noise_unshot": sub.noise.unshot,
+        "noise_sums": np.array([sub.noise._sums.d2, sub.noise._sums.b2, sub.noise._sums.r2]),
         **held,
     }
 
@@ -666,8 +738,6 @@ def checkpoint_arrays(sub: Subscene) -> dict:
 def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: str, names: list[str],
                    arrays: dict, local_target: float = 0.0) -> Subscene:
     """Rebuild a subscene from ``subscene_arrays`` (plus ``checkpoint_arrays`` to resume)."""
-    import json
-
     p = Patches(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
                 arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy(),
                 twin=arrays.get("twin"))
@@ -682,10 +752,13 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
         sub.stats.trace_seconds = float(arrays["trace_seconds"][0])
         sub.back_by_obj = np.array(arrays["back_by_obj"], np.float64)
         sub.rng.bit_generator.state = json.loads(bytes(arrays["rng_state"]).decode())
-        kind = RayParcel if mode == "exact" else TwinBuffer
-        for name in ("pending", "sent"):
+        if "noise_diff" in arrays:
+            sub.noise.diff = np.array(arrays["noise_diff"], np.float64)
+            sub.noise.unshot = np.array(arrays["noise_unshot"], np.float64)
+            sub.noise._sums.d2, sub.noise._sums.b2, sub.noise._sums.r2 = (float(x) for x in arrays["noise_sums"])
+        kinds = {"sent": sub.boundary_mode.buffer, "pending": TwinBuffer, "forward": RayParcel}
+        for name in _HELD:
             part = {k[len(name) + 1:]: v for k, v in arrays.items() if k.startswith(name + "_")}
             if part:
-                buf = kind.from_arrays(part)
-                setattr(sub, "forward" if (name == "pending" and mode == "exact") else name, buf)
+                setattr(sub, name, kinds[name].from_arrays(part))
     return sub

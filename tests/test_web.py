@@ -147,7 +147,7 @@ def test_job_page_grows_live_and_cancels_in_a_browser(cluster, office):
         n0 = points(page, "estimate")
         wait_js(page, f"Number(document.querySelector('#chart').dataset.estimatePoints) >= {n0 + 2}")
         assert page.locator("#chart circle.estimate").count() >= n0 + 2
-        assert "live estimate" in page.inner_text("#legend")
+        assert "estimated error" in page.inner_text("#legend")
 
         # the preview is re-rendered at a later barrier and swapped in without a reload
         v1, pixels1, w, h = preview_after(page, 0)
@@ -168,7 +168,7 @@ def test_job_page_grows_live_and_cancels_in_a_browser(cluster, office):
         wait_js(page, "document.querySelector('#state').textContent === 'cancelled'", 120)
         wait_js(page, "Number(document.querySelector('#chart').dataset.measuredPoints) >= 1", 30)
         legend = page.inner_text("#legend")
-        assert "live estimate" in legend and "measured against the state when cancelled" in legend
+        assert "estimated error" in legend and "measured against the state when cancelled" in legend
         assert page.is_hidden("#cancel")  # nothing left to cancel
         page.screenshot(path=str(ARTIFACTS / "job-page-cancelled.png"), full_page=True)
         assert not errors, errors
@@ -333,3 +333,40 @@ def test_solve_prints_the_status_page_address(tmp_path):
                        capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert re.search(r"dcrad: status page http://127\.0\.0\.1:\d+/jobs/[0-9a-f]{12}", r.stderr), r.stderr
+
+
+def test_display_never_blocks_the_barrier_and_bounds_preview_cost(tmp_path):
+    """Barriers hand their state to the display thread and go on; while it is busy, later
+    states replace the pending one (skipped, not queued).  A preview that took c seconds is
+    not due again for c / PREVIEW_SHARE seconds, however short the interval."""
+    import threading
+
+    from coordinator.jobs import PREVIEW_SHARE, BarrierDisplay
+    from dcrad.pipeline import prepare
+
+    scene, patches, _ = prepare(scenes.write_builtin("cornell", tmp_path / "c"))
+    prev = LivePreview(scene, patches, tmp_path / "live", size=(32, 24), interval=0.0)
+    gate, busy, seen = threading.Event(), threading.Event(), []
+
+    def assemble_b(values):
+        seen.append(float(values[0, 0]))
+        busy.set()
+        gate.wait()  # the display is busy for as long as the test wants
+        return values
+
+    curve = ErrorCurve(ratio=1.0001)
+    display = BarrierDisplay(assemble_b, curve, prev, lambda **kw: None)
+    display.offer(1.0, 1, np.full((len(patches), 3), 1.0))
+    busy.wait()
+    for k in range(2, 6):  # four more barriers while the display is stuck on the first
+        display.offer(float(k), k, np.full((len(patches), 3), float(k)))
+    gate.set()
+    display.close()
+    assert seen[0] == 1.0 and seen[-1] == 5.0 and len(seen) < 5  # the latest state, not a queue
+    assert [k for _, k, _ in curve.kept] == [int(v) for v in seen]
+    assert prev.current[0] >= 1 and prev._cost > 0
+    prev._cost = 10.0  # a 10 s render: the next one waits 10 / PREVIEW_SHARE s
+    prev._last = __import__("time").monotonic() - 10.0 / PREVIEW_SHARE + 60.0
+    assert not prev.due()
+    prev._last -= 120.0
+    assert prev.due()
