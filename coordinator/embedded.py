@@ -6,20 +6,88 @@ them all (SIGTERM, then SIGKILL after a grace period) when the ``with`` block
 ends.  ``kill_worker(i)`` is there for the worker-loss tests.  The coordinator's
 web status pages listen on a free loopback port (``web_url``) unless
 ``web=False``.
+
+The cluster ends with its parent however the parent ends (SIGTERM, SIGHUP,
+SIGKILL): each child learns its parent's pid from ``DCRAD_PARENT_PID`` and calls
+``die_with_parent`` at start, which asks Linux for a parent-death signal (when
+the parent spawned it from its main thread: the signal follows the spawning
+thread) and starts a watchdog thread that stops the child once its parent pid
+changes (re-parented to init or a subreaper).
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 import grpc
 
-from dcrad.errors import DcradError
+from dcrad.errors import ConfigError, DcradError
+
+#: environment of a child of LocalCluster: the parent's pid, and "1" when the parent-death
+#: signal may be used (the child was spawned from the parent's main thread)
+PARENT_ENV, DEATHSIG_ENV = "DCRAD_PARENT_PID", "DCRAD_PARENT_DEATHSIG"
+_PR_SET_PDEATHSIG = 1
+#: s between the watchdog's looks at the parent pid, and s a stopping child gets before it is ended
+WATCH_PERIOD, GRACE = 0.5, 10.0
+
+
+def max_local_workers() -> int:
+    """The most worker processes ``dcrad solve`` starts on this machine: 4 per CPU, and at most
+    one per 256 MiB of memory (each worker holds its subscenes and an Embree scene)."""
+    cpus = os.cpu_count() or 1
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        memory = 1 << 40
+    return max(1, min(4 * cpus, memory // (256 << 20)))
+
+
+def check_workers(n: int) -> None:
+    """ConfigError unless 0 <= n <= max_local_workers() (0: solve in this process)."""
+    if n < 0:
+        raise ConfigError(f"--workers must be >= 0 (0: solve in this process), not {n}")
+    limit = max_local_workers()
+    if n > limit:
+        raise ConfigError(f"--workers {n}: at most {limit} local worker processes on this machine "
+                          f"({os.cpu_count() or 1} CPUs; more only compete for them); for more, run "
+                          f"`dcrad coordinator` and workers on other machines")
+
+
+def die_with_parent(environ=os.environ) -> bool:
+    """In a child of LocalCluster: end this process when its parent ends; False when not such a child.
+
+    The parent-death signal (SIGTERM, so the services stop as on ``docker stop``)
+    covers a parent killed by any signal, SIGKILL included; the watchdog covers the
+    rest (a parent that died before the signal was armed, or a non-Linux kernel).
+    A child still alive ``GRACE`` s after its parent is gone exits at once.
+    """
+    try:
+        parent = int(environ.get(PARENT_ENV, ""))
+    except ValueError:
+        return False
+    if environ.get(DEATHSIG_ENV) == "1" and sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(WATCH_PERIOD)
+        os.kill(os.getpid(), signal.SIGTERM)  # the services' own clean stop
+        time.sleep(GRACE)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+    return True
 
 
 def _read_port(proc: subprocess.Popen, role: str, timeout: float, on_line=None) -> int:
@@ -60,12 +128,14 @@ class LocalCluster:
         self.address = ""
 
     def _spawn(self, *args: str) -> subprocess.Popen:
+        main = threading.current_thread() is threading.main_thread()
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env.update({PARENT_ENV: str(os.getpid()), DEATHSIG_ENV: "1" if main else "0"})
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        err = open(self.log_dir / f"{args[0]}-{len(self.workers)}.log", "ab")
-        return subprocess.Popen([self.python, "-m", "dcrad.cli", *args], stdout=subprocess.PIPE, stderr=err,
-                                text=True, env=env, stdin=subprocess.DEVNULL,
-                                start_new_session=True)  # a terminal Ctrl-C reaches only the parent
+        with open(self.log_dir / f"{args[0]}-{len(self.workers)}.log", "ab") as err:
+            return subprocess.Popen([self.python, "-m", "dcrad.cli", *args], stdout=subprocess.PIPE, stderr=err,
+                                    text=True, env=env, stdin=subprocess.DEVNULL,
+                                    start_new_session=True)  # a terminal Ctrl-C reaches only the parent
 
     def start_worker(self) -> int:
         """Start one more worker; returns its index."""
@@ -73,6 +143,18 @@ class LocalCluster:
         self.workers.append(proc)
         self.worker_ports.append(_read_port(proc, "worker", self.start_timeout))
         return len(self.workers) - 1
+
+    def kill_coordinator(self) -> None:
+        """SIGKILL the coordinator: no goodbye, as a crash would be (the workers keep running)."""
+        self.coordinator.kill()
+        self.coordinator.wait(10)
+        if self.coordinator.stdout:
+            self.coordinator.stdout.close()
+
+    def restart_coordinator(self) -> None:
+        """Start the coordinator again on the same port and data folder (after ``kill_coordinator``)."""
+        self.port = int(self.address.rsplit(":", 1)[1])
+        self._start_coordinator()
 
     def kill_worker(self, i: int) -> None:
         """SIGKILL worker i: no goodbye, as a crash would be."""
@@ -97,20 +179,23 @@ class LocalCluster:
                 time.sleep(0.05)
         raise DcradError(f"fewer than {n} workers registered within {self.start_timeout:.0f} s")
 
+    def _start_coordinator(self) -> None:
+        web = ("--web-port", "0", "--web-host", "127.0.0.1") if self.web else ("--web-port", "-1")
+        if "--web-port" in self.coordinator_args:
+            web = ()
+        self.coordinator = self._spawn("coordinator", "--port", str(self.port), "--data",
+                                       str(self.data / "coordinator"), *web, *self.coordinator_args)
+
+        def on_line(line: str) -> None:
+            if " web on " in line:
+                self.web_url = line.strip().rsplit(" ", 1)[1]
+
+        port = _read_port(self.coordinator, "coordinator", self.start_timeout, on_line)
+        self.address = f"127.0.0.1:{port}"
+
     def __enter__(self) -> "LocalCluster":
         try:
-            web = ("--web-port", "0", "--web-host", "127.0.0.1") if self.web else ("--web-port", "-1")
-            if "--web-port" in self.coordinator_args:
-                web = ()
-            self.coordinator = self._spawn("coordinator", "--port", str(self.port), "--data",
-                                           str(self.data / "coordinator"), *web, *self.coordinator_args)
-
-            def on_line(line: str) -> None:
-                if " web on " in line:
-                    self.web_url = line.strip().rsplit(" ", 1)[1]
-
-            port = _read_port(self.coordinator, "coordinator", self.start_timeout, on_line)
-            self.address = f"127.0.0.1:{port}"
+            self._start_coordinator()
             for _ in range(self.n_workers):
                 self.start_worker()
             self.wait_registered(self.n_workers)

@@ -1,0 +1,87 @@
+"""The embedded cluster of `dcrad solve` ends with it, however it ends.
+
+`dcrad solve --workers 2` is a real process with a real coordinator and two worker
+processes.  It is stopped with SIGTERM, SIGHUP (both handled like Ctrl-C: the job is
+cancelled and the results so far written) and SIGKILL (no chance to clean up: the
+children's parent-death signal and watchdog end them).  Afterwards none of its
+children is alive.  Processes are identified by pid and start time, never by name:
+other dcrad processes may run on the same machine.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+
+def _stat(pid: int) -> list[str] | None:
+    """Fields of /proc/PID/stat after the command name, or None when the pid is gone."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return text.rsplit(")", 1)[1].split()
+
+
+def children_of(pid: int) -> dict[int, str]:
+    """{child pid: start time} of the live children of ``pid``."""
+    out = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            st = _stat(int(entry.name))
+            if st is not None and int(st[1]) == pid and st[0] != "Z":
+                out[int(entry.name)] = st[19]
+    return out
+
+
+def alive(pid: int, start: str) -> bool:
+    st = _stat(pid)
+    return st is not None and st[19] == start and st[0] != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGKILL], ids=lambda s: s.name)
+def test_killed_solve_leaves_no_process(tmp_path, sig):
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "dcrad.cli", "solve", "furnace:rho=0.99", "--tol", "1e-9",
+                             "--workers", "2", "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            start_new_session=True)  # its own group: the signal reaches it alone
+    kids: dict[int, str] = {}
+    try:
+        lines = []
+        for line in proc.stderr:
+            lines.append(line)
+            if "status page" in line:  # the cluster is up and the job submitted
+                break
+        assert proc.poll() is None, "".join(lines)
+        kids = children_of(proc.pid)
+        assert len(kids) == 3, kids  # the coordinator and two workers
+        time.sleep(1.0)  # let the job run a little
+        os.kill(proc.pid, sig)
+        rest = proc.communicate(timeout=120)[1]
+        deadline = time.monotonic() + 60
+        while any(alive(p, s) for p, s in kids.items()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        left = [p for p, s in kids.items() if alive(p, s)]
+        assert not left, f"still running after {sig.name}: {left}"
+        if sig != signal.SIGKILL:  # handled like Ctrl-C: cancelled, results so far written
+            assert proc.returncode == 0, rest
+            report = json.loads((out / "report.json").read_text())
+            assert report["stats"]["stopped_by"] == "stopped"
+        else:
+            assert proc.returncode == -signal.SIGKILL
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        for p, s in kids.items():  # never leave them to the machine, even when the test fails
+            if alive(p, s):
+                os.kill(p, signal.SIGKILL)
