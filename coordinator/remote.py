@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import grpc
 import numpy as np
 
-from dcrad.boundary import RayParcel, TwinBuffer
+from dcrad.boundary import boundary_mode
 from dcrad.divide import SubsceneState, subscene_arrays
 from dcrad.errors import DcradError
 from dcrad.noise import NoiseSums
@@ -211,8 +211,7 @@ class RemoteSubscene:
         replies = self.worker.stub().Iterate(request, timeout=self.timeout)
         arrays, status = _gather(replies)
         self.rpc_seconds["iterate"] += time.perf_counter() - t0
-        kind = RayParcel if self.mode == "exact" else TwinBuffer
-        return kind.from_arrays(arrays), status
+        return boundary_mode(self.mode).buffer.from_arrays(arrays), status
 
     def iterate(self, n: int, plan=None) -> int:
         self._last_batches, self._last_plan = n, plan

@@ -26,10 +26,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import ExchangeError, PartitionError
+from .errors import ConfigError, ExchangeError, PartitionError
 from .sampling import concentric_disk, concentric_disk_inverse
 
-__all__ = ["Boundary", "make_boundary", "coarsen_directions", "direction_levels", "TwinBuffer", "transfer", "RayParcel", "transfer_rays", "KEY_LIMIT"]
+__all__ = ["Boundary", "make_boundary", "coarsen_directions", "direction_levels", "TwinBuffer", "transfer", "RayParcel", "transfer_rays", "KEY_LIMIT",
+           "BoundaryMode", "MODES", "boundary_mode"]
 
 KEY_LIMIT = np.iinfo(np.int64).max  # packed keys must stay <= this
 
@@ -563,3 +564,49 @@ def transfer_rays(incoming: dict, boundaries: list) -> dict:
     if np.abs(moved - recorded).sum() > 1e-12 * max(np.abs(recorded).sum(), 1e-300):
         raise ExchangeError(f"ray transfer lost power: moved {moved}, recorded {recorded}")
     return out
+
+
+# == the boundary modes, each in one place ==========================================
+
+def _record_twins(sent: TwinBuffer, b: Boundary, points, dirs, crossing, power) -> None:
+    sent.add(np.full(len(points), b.id), crossing, b.cell_of(points), b.bin_of(dirs), power)
+
+
+def _record_rays(sent: RayParcel, b: Boundary, points, dirs, crossing, power) -> None:
+    sent.add(b.id, points, dirs, power)
+
+
+@dataclass(frozen=True)
+class BoundaryMode:
+    """What a boundary mode is: what crosses at a barrier and how it is routed.
+
+    buffer   : the type recorded while iterating and handed over at the barrier
+    sent     : (max_cells, max_bins) -> an empty ``buffer`` to record crossings in
+    record   : (sent, boundary, points, dirs, crossing, power) -> None, for rays
+               that hit ``boundary`` (points on it, crossing 0: side A to B)
+    transfer : transferEnergy, {cell: buffer} -> {cell: buffer} for the far sides
+    """
+
+    name: str
+    buffer: type
+    sent: object
+    record: object
+    transfer: object
+
+    def empty(self):
+        """An empty delivery (for a cell that nothing crossed into)."""
+        return self.sent(1, 1)
+
+
+#: "binned": the paper's twins, power by (portal cell, direction bin); "exact": whole rays
+MODES = {
+    "binned": BoundaryMode("binned", TwinBuffer, TwinBuffer, _record_twins, transfer),
+    "exact": BoundaryMode("exact", RayParcel, lambda max_cells, max_bins: RayParcel(), _record_rays, transfer_rays),
+}
+
+
+def boundary_mode(name: str) -> BoundaryMode:
+    """The BoundaryMode called ``name``; a ConfigError naming the choices otherwise."""
+    if name not in MODES:
+        raise ConfigError(f"boundary mode must be one of {', '.join(MODES)}, not {name!r}")
+    return MODES[name]

@@ -17,7 +17,6 @@ import time
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
-from dcrad.boundary import RayParcel, TwinBuffer
 from dcrad.config import SolverConfig
 from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
@@ -114,7 +113,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             await context.abort(grpc.StatusCode.NOT_FOUND, f"no subscene {k} on this worker")
         try:
             arrays = asm.result()
-            buf = (RayParcel if sub.mode == "exact" else TwinBuffer).from_arrays(arrays)
+            buf = sub.boundary_mode.buffer.from_arrays(arrays)
         except (DcradError, KeyError, ValueError) as exc:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad boundary buffer: {exc}")
         async with self.locks[k]:
