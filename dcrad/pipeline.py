@@ -124,7 +124,7 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     n = len(patches)
     both = render.corner_radiosity(patches, values=np.column_stack([patches.radiosity, lux, np.ones(n),
                                                                     np.zeros(n)]))
-    corners, fc_corners = both[..., :3], both[..., 3:]
+    corners = both[..., :3]
     grid = photometry.workplane(patches, workplane, tracer=tracer) if workplane > 0 else None
     extra = {"valid_input": scene.valid, "patch_E_lux": lux,
              "patch_L_cd_m2": photometry.luminance_cd(patches.radiosity)}
@@ -138,28 +138,33 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     written["mesh"] = "scene.glb"
 
     camera = render.camera_from_dict(scene.camera, width, height) if scene.camera else render.auto_camera(patches, width, height)
-    img = render.render(patches, camera, corner_values=corners, tracer=tracer, samples=render.SAMPLES,
-                        exposure=exposure)
+    # each view is cast once: B (3 channels) and the false colour's (lux, front, back) together;
+    # seen from behind, B shows the neutral flag grey and the false colour counts "back"
+    flag = np.concatenate([np.multiply(render.BACKFACE_COLOR, 0.9 / exposure), [0.0, 0.0, 1.0 / np.pi]])
+    floor_plan = _is_floor_plan(patches)
+    both_img = render.render(patches, camera, corner_values=both, tracer=tracer, samples=render.SAMPLES,
+                             backface_color=flag)
+    img = both_img[..., :3]
     export.write_png(out / "preview.png", render.tonemap(img, exposure=exposure))
     export.write_exr(out / "preview.exr", img)
     written["preview_png"] = "preview.png"
     written["preview_exr"] = "preview.exr"
-    view, mask, view_tracer = camera, None, tracer
-    if _is_floor_plan(patches):
-        view, mask = render.topdown_camera(patches, width, height), render.cutaway_mask(patches)
-        view_tracer = Tracer(patches.triangles[mask])
-        img = render.render(patches, view, mask=mask, corner_values=corners, samples=render.SAMPLES,
-                            exposure=exposure, tracer=view_tracer)
+    view = "preview camera"
+    if floor_plan:
+        mask = render.cutaway_mask(patches)
+        both_img = render.render(patches, render.topdown_camera(patches, width, height), mask=mask,
+                                 corner_values=both, samples=render.SAMPLES, backface_color=flag,
+                                 tracer=Tracer(patches.triangles[mask]))
+        img = both_img[..., :3]
         export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure))
         export.write_exr(out / "preview_top.exr", img)
         written["preview_top_png"] = "preview_top.png"
         written["preview_top_exr"] = "preview_top.exr"
-    # false colour: lux, front coverage and back coverage as three rendered channels
+        view = "top-down cut-away"
+    # false colour of the last view (the floor plan if any)
     lamp = np.any(patches.emission > 0, axis=1)
     top = photometry.legend_scale(lux[~lamp], patches.area[~lamp])
-    fc = render.render(patches, view, mask=mask, corner_values=fc_corners, samples=render.SAMPLES,
-                       tracer=view_tracer, backface_color=(0.0, 0.0, 1.0 / np.pi))
-    fc = fc.astype(np.float64) * np.pi
+    fc = both_img[..., 3:].astype(np.float64) * np.pi
     export.write_png(out / "illuminance.png", photometry.false_colour(fc[..., 0], fc[..., 1], fc[..., 2], top))
     written["illuminance_png"] = "illuminance.png"
     if sections is not None:
@@ -170,7 +175,7 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
                       "L = 179 x Y(B) / pi",
             "gathered_patches": int(gathered.sum()),
             "legend_max_lux": top,
-            "view": "top-down cut-away" if mask is not None else "preview camera",
+            "view": view,
             "surfaces": photometry.surface_stats(patches, lux),
         }
         if grid is not None:
