@@ -145,7 +145,7 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     both_img = render.render(patches, camera, corner_values=both, tracer=tracer, samples=render.SAMPLES,
                              backface_color=flag)
     img = both_img[..., :3]
-    export.write_png(out / "preview.png", render.tonemap(img, exposure=exposure))
+    export.write_png(out / "preview.png", render.tonemap(img, exposure=exposure, shoulder=render.SHOULDER))
     export.write_exr(out / "preview.exr", img)
     written["preview_png"] = "preview.png"
     written["preview_exr"] = "preview.exr"
@@ -156,7 +156,7 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
                                  corner_values=both, samples=render.SAMPLES, backface_color=flag,
                                  tracer=Tracer(patches.triangles[mask]))
         img = both_img[..., :3]
-        export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure))
+        export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure, shoulder=render.SHOULDER))
         export.write_exr(out / "preview_top.exr", img)
         written["preview_top_png"] = "preview_top.png"
         written["preview_top_exr"] = "preview_top.exr"

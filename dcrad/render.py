@@ -37,6 +37,8 @@ __all__ = [
 BACKFACE_COLOR = (0.3, 0.3, 0.3)
 #: jittered samples per pixel of the previews (a 2 x 2 stratified pattern)
 SAMPLES = 4
+#: previews: luminance above this (after exposure) rolls off toward white (tonemap)
+SHOULDER = 0.8
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -488,12 +490,16 @@ def tonemap(
     percentile: float = 99.0,
     white: float = 0.9,
     srgb: bool = True,
+    shoulder: float | None = None,
 ) -> np.ndarray:
     """Linear (..., 3) image -> (..., 3) uint8, sRGB-encoded unless ``srgb=False``.
 
     ``exposure`` multiplies the image; by default the ``percentile`` of the
     luminance of the non-black pixels maps to ``white`` (an all-black image
-    keeps exposure 1).  Values are then clamped to [0, 1]; NaN become 0.
+    keeps exposure 1).  ``shoulder`` (e.g. 0.8, the previews' SHOULDER): luminance
+    above it rolls off smoothly toward 1 instead of clipping (colour ratios kept),
+    so bright surfaces under lamps keep their shading.  Values are then clamped to
+    [0, 1]; NaN become 0.
     """
     x = np.nan_to_num(np.asarray(img, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     if exposure is None:
@@ -501,7 +507,15 @@ def tonemap(
         lum = lum[lum > 0]
         ref = float(np.percentile(lum, percentile)) if lum.size else 0.0
         exposure = white / ref if ref > 0 else 1.0
-    x = np.clip(x * float(exposure), 0.0, 1.0)
+    x = x * float(exposure)
+    if shoulder is not None and 0.0 < shoulder < 1.0:
+        lum = luminance(x)
+        k = float(shoulder)
+        high = lum > k
+        t = (lum[high] - k) / (1.0 - k)
+        rolled = k + (1.0 - k) * t / (1.0 + t)  # slope 1 at the knee, 1 reached only at infinity
+        x[high] *= (rolled / lum[high])[..., None]
+    x = np.clip(x, 0.0, 1.0)
     if srgb:
         x = _srgb_oetf(x)
     return np.round(x * 255.0).astype(np.uint8)

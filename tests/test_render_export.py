@@ -429,3 +429,18 @@ def test_false_colour_image_has_its_legend():
     rows = np.flatnonzero(bright.any(axis=1))
     assert len(rows) > 20 and rows.min() < 30 and rows.max() > h - 30  # labels at top and bottom ticks
     assert photometry.legend_scale(np.array([10.0, 420.0]), np.ones(2)) == 500.0
+
+
+def test_tonemap_shoulder_rolls_highlights_off():
+    from dcrad.render import SHOULDER
+
+    lum = np.array([0.1, 0.5, 0.79, 0.9, 1.0, 2.0, 8.0])
+    img = np.repeat(lum[:, None], 3, axis=1)
+    hard = tonemap(img, exposure=1.0, srgb=False)[:, 0]
+    soft = tonemap(img, exposure=1.0, srgb=False, shoulder=SHOULDER)[:, 0]
+    assert np.all(soft[:3] == hard[:3])  # below the knee: unchanged
+    assert np.all(np.diff(soft.astype(int)) > 0)  # still increasing past white: no clipping plateau
+    assert hard[4] == hard[5] == hard[6] == 255 and soft[5] < 255
+    # colour ratios are kept on the shoulder
+    c = tonemap(np.array([[2.0, 1.0, 0.5]]), exposure=1.0, srgb=False, shoulder=SHOULDER)[0].astype(float)
+    assert c[0] == 255 or abs(c[1] / c[2] - 2.0) < 0.05
