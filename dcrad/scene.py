@@ -242,7 +242,7 @@ def _load_obj(path: str, warnings: list):
     for k, (m, written, full) in maps.items():
         rows = np.flatnonzero(g == k)
         where = f"material '{m.name}' in {m.file}"
-        image = _texture(images, full, written, where, "Kd", warnings)
+        image = _texture(images, full, written, where, "Kd factor", warnings)
         if image is None or not len(rows):
             continue
         uv = data.uv[rows] if data.uv is not None else np.full((len(rows), 3, 2), np.nan)
@@ -258,7 +258,7 @@ def _texture(cache: dict, full: str, written: str, where: str, factor: str, warn
         try:
             cache[full] = read_texture(full)
         except OSError as exc:
-            warnings.append(f"{where}: texture '{written}' not usable ({exc}); using the {factor} factor alone")
+            warnings.append(f"{where}: texture '{written}' not usable ({exc}); using the {factor} alone")
             cache[full] = None
     return cache[full]
 

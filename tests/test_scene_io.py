@@ -526,3 +526,49 @@ def test_gltf_missing_texture_warns_and_uses_the_factor(tmp_path):
     s = load_scene(_textured_gltf(tmp_path, "gone.png"))
     assert np.allclose(s.rho, [0.5, 0.9, 0.7]) and s.textured == []
     assert any("gone.png" in w for w in s.warnings), s.warnings
+
+
+def test_glb_embedded_texture_is_read(tmp_path):
+    """A GLB whose image lives in the binary chunk (a buffer view), as exporters write them."""
+    _png(tmp_path / "t.png", [[[200, 100, 50]] * 2] * 2)
+    png = (tmp_path / "t.png").read_bytes()
+    pos = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32).tobytes()
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32).tobytes()
+    idx = np.array([0, 1, 2, 0, 2, 3], np.uint16).tobytes() + b"\0\0"
+    blob = pos + uv + idx + png
+    blob += b"\0" * (-len(blob) % 4)
+    views = [(0, 48), (48, 32), (80, 12), (94, len(png))]
+    header = {
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0}]}],
+        "materials": [{"name": "tiles", "pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.5, 0.5, 1.0],
+                                                                 "baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0}], "images": [{"bufferView": 3, "mimeType": "image/png"}],
+        "buffers": [{"byteLength": len(blob)}],
+        "bufferViews": [{"buffer": 0, "byteOffset": o, "byteLength": n} for o, n in views],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]},
+            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"},
+        ],
+    }
+    js = json.dumps(header).encode()
+    js += b" " * (-len(js) % 4)
+    glb = struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(js) + 8 + len(blob))
+    glb += struct.pack("<I4s", len(js), b"JSON") + js + struct.pack("<I4s", len(blob), b"BIN\0") + blob
+    (tmp_path / "a.glb").write_bytes(glb)
+    s = load_scene(tmp_path / "a.glb")
+    np.testing.assert_allclose(s.rho, np.broadcast_to(0.5 * _linear([200, 100, 50]), (2, 3)), rtol=1e-6)
+    assert s.textured == ["tiles"] and s.two_sided is None
+
+
+def test_mtl_two_sided_flag_marks_its_material_only(tmp_path):
+    mtl = "newmtl a\nKd 0.5 0.5 0.5\ntwo_sided 1\nnewmtl b\nKd 0.5 0.5 0.5\n"
+    body = GRID + "usemtl a\nf 1 2 5\nusemtl b\nf 1 5 4\n"
+    s = load_scene(write(tmp_path, body, mtl))
+    assert s.two_sided.tolist() == [True, False]
+    p = s.patches()
+    assert len(p) == 3 and p.twin.tolist() == [2, -1, 0]
+    np.testing.assert_allclose(p.normal[2], -p.normal[0])
+    assert p.emission[2].tolist() == [0.0, 0.0, 0.0]
+    assert load_scene(write(tmp_path, body, mtl), two_sided=True).two_sided.all()
