@@ -490,3 +490,49 @@ def test_two_sided_mixed_winding_divided(tmp_path):
     exp = furnace_expected(0.5, 1.0, 3.0, 0.2)["mean_b_minus_e"]  # only inward sides receive light
     assert np.all(np.abs(reflected - exp) <= 0.01 * exp), reflected
     assert z["B_back"].shape == z["B"].shape
+
+
+def test_furnace_illuminance_meets_the_identity(tmp_path):
+    """Closed cube, uniform rho: the power incident on all surfaces is Phi / (1 - rho), so the
+    area-mean illuminance is 179 Y(Phi) / ((1 - rho) A) lux; photometry.irradiance recovers it
+    from B as (B - E) / rho, and black patches gathered from the solution agree."""
+    from dcrad import photometry
+    from dcrad.config import SolverConfig
+    from dcrad.scene import load_scene
+    from dcrad.solve import Solver
+
+    rho = 0.6
+    p = load_scene(scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)).patches(0.15)
+    Solver(p, SolverConfig(tol=2e-3, seed=2)).run()
+    h, gathered = photometry.irradiance(p)
+    exp = furnace_expected(rho, 1.0, 3.0, 0.2)
+    lux = photometry.to_lux(h)
+    mean = float((lux * p.area).sum() / p.area.sum())
+    assert not gathered.any()
+    assert mean == pytest.approx(179.0 * exp["mean_b"], rel=5e-3)  # grey: Y(H) = H
+    # the same patches treated as black (gathered from the solved B) see the same mean
+    black = p.subset(np.arange(len(p)))
+    black.rho = np.zeros_like(black.rho)
+    hb, gb = photometry.irradiance(black, rays=64)
+    assert gb.all()
+    assert float((photometry.to_lux(hb) * p.area).sum() / p.area.sum()) == pytest.approx(mean, rel=0.02)
+
+
+def test_auto_camera_stands_in_the_lit_room(tmp_path):
+    """Two rooms, one lit: the automatic camera of the closed floor looks at the lit one."""
+    from dcrad.config import SolverConfig
+    from dcrad.render import auto_camera
+    from dcrad.scene import load_scene
+    from dcrad.solve import Solver
+
+    for seed in range(20):  # a seed whose two rooms differ: one lit, one dark
+        path = scenes.write_builtin("office", tmp_path / str(seed), rows=1, cols=2, lit_fraction=0.5, seed=seed)
+        p = load_scene(path).patches(0.5)
+        lamps = p.centroid[np.any(p.emission > 0, axis=1)]
+        if len(lamps) and np.ptp(np.sign(lamps[:, 0] - p.centroid[:, 0].mean())) == 0:
+            break
+    Solver(p, SolverConfig(tol=0.05, seed=1)).run()
+    mid = 0.5 * (p.bounds[0][0] + p.bounds[1][0])
+    lit_side = np.sign(lamps[0, 0] - mid)
+    cam = auto_camera(p, 64, 48)
+    assert np.sign(cam.eye[0] - mid) == lit_side and np.sign(cam.target[0] - mid) == lit_side
