@@ -31,16 +31,17 @@ def triangle_normals(tri: np.ndarray) -> np.ndarray:
 
 
 def remap_twin(twin: np.ndarray, parent: np.ndarray) -> np.ndarray:
-    """Twins of a table whose row i came from row ``parent[i]`` (sorted) of one with ``twin``.
+    """Twins of a table whose row i came from row ``parent[i]`` of one with ``twin``.
 
     Row i gets the first row whose parent is ``twin[parent[i]]`` (-1 if none): exact
     for rows copied whole, the same surface nearby for clipped pieces.
     """
     tp = twin[parent]
-    pos = np.searchsorted(parent, tp)
-    at = np.minimum(pos, max(len(parent) - 1, 0))
-    ok = (tp >= 0) & (pos < len(parent)) & (parent[at] == tp) if len(parent) else tp >= 0
-    return np.where(ok, pos, -1).astype(np.int64)
+    order = np.argsort(parent, kind="stable")
+    sorted_parent = parent[order]
+    pos = np.minimum(np.searchsorted(sorted_parent, tp), len(parent) - 1)
+    ok = (tp >= 0) & (sorted_parent[pos] == tp)
+    return np.where(ok, order[pos], -1).astype(np.int64)
 
 
 def subdivide(vertices: np.ndarray, faces: np.ndarray, max_edge: float):
