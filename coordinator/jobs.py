@@ -447,7 +447,7 @@ class JobManager:
             for h in handles:
                 h.place()
             timings["setup_s"] = time.perf_counter() - t0  # partition, clip, load on the workers
-            job.workers = sorted({h.worker.address for h in handles})
+            job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
             pieces = [s.patches for s in subs]
 
             job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
@@ -494,7 +494,7 @@ class JobManager:
             job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), run.barriers)
             timings["solve_s"] = run.wall_seconds
             books = divided_books(run, patches, config, boundaries, part, divide, timings)
-            books.divided |= {
+            books.divided = (books.divided or {}) | {
                 "reassigned": [h.reassigned for h in handles],
                 "bytes_relayed": sum(h.bytes_relayed for h in handles),
                 "checkpoint_bytes": sum(h.checkpoint_bytes for h in handles),

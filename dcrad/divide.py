@@ -25,27 +25,29 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from .accuracy import by_accuracy, noise_floor, resolve
 from .boundary import Boundary, RayParcel, TwinBuffer, boundary_mode, coarsen_directions, direction_levels
 from .config import DivideConfig, SolverConfig
-from .accuracy import by_accuracy, noise_floor, resolve
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .errors import ConfigError
 from .noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
 from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
+from .snapshots import SnapshotStore
 from .solve import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
-    "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor", "DivideConfig",
-    "build_subscenes", "subscene_specs", "SubsceneSpec", "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene",
-    "boundaries_to_array", "boundaries_from_array", "run_subscenes",
+    "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor",
+    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "solve_divided", "subscene_arrays",
+    "checkpoint_arrays", "build_subscene", "boundaries_to_array", "boundaries_from_array", "run_subscenes",
 ]
 
 
@@ -171,7 +173,7 @@ class Subscene(Solver):
         and U = U_rest (the signed unshot and twin power the other subscenes held
         at the barrier) + this subscene's own, as it is now.
         """
-        if not st.scale.any():
+        if not st.scale.any() or self.plan is None:
             return st.scale
         return st.scale * (self.plan.rest + self.ledger.unshot + self.ledger.in_flight)
 
@@ -316,7 +318,7 @@ class Subscene(Solver):
         this subscene can do now, so it does not count here.
         """
         p = self.patches
-        pending = sum(h.total_abs() for h in (self.pending, self.forward)).sum()
+        pending = (self.pending.total_abs() + self.forward.total_abs()).sum()
         amounts = self.shoot_amounts(self.stiffness())
         return float((np.abs(amounts) * p.area[:, None]).sum() + pending)
 
@@ -351,7 +353,7 @@ class Subscene(Solver):
             rays += r
         return rays
 
-    def collect(self) -> TwinBuffer:
+    def collect(self) -> TwinBuffer | RayParcel:
         """Hand over what crossed the boundaries since the last barrier."""
         out = self.sent.drain()
         self.ledger.exported = self.ledger.exported + out.total()
@@ -417,7 +419,8 @@ class DividedRun:
 
     ledger: Ledger
     snapshots: list[Snapshot] = field(default_factory=list)
-    snapshot_B: list[np.ndarray] = field(default_factory=list)
+    #: B at each snapshot, float16 under the ``snapshot_mb`` cap (snapshots.py)
+    snapshot_B: SnapshotStore = field(default_factory=SnapshotStore)
     barrier_closures: list[float] = field(default_factory=list)
     states: list[SubsceneState] = field(default_factory=list)
     barriers: int = 0
@@ -440,7 +443,7 @@ def job_estimate(states: list[SubsceneState], led: Ledger) -> Estimate | None:
     tallies and the job ledger's unshot and in-flight power; None if a subscene sent no sums."""
     if not states or any(s.noise is None for s in states):
         return None
-    sums = sum((s.noise for s in states), NoiseSums(rho2=np.zeros(3)))
+    sums = sum((s.noise for s in states if s.noise is not None), NoiseSums(rho2=np.zeros(3)))
     tallies = sum((s.tallies for s in states), np.zeros((4, 3)))
     held = np.maximum(led.unshot_abs, np.abs(led.unshot)) + np.maximum(led.in_flight_abs, np.abs(led.in_flight))
     mean_rho = np.sqrt(sums.rho2 / max(sums.area, 1e-300))  # before the first shot (an upper bound)
@@ -509,7 +512,10 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
         run.barrier_closures.append(led.closure())
         run.max_twin_bytes = max(run.max_twin_bytes, sum(s.twin_bytes for s in states))
         if assemble_B is not None:
-            run.snapshot_B.append(assemble_B().astype(np.float32))
+            run.snapshot_B.append(assemble_B())
+            if run.snapshot_B.nbytes > config.snapshot_mb * 2**20 and len(run.snapshot_B) > 2:
+                keep = run.snapshot_B.thin()  # every other barrier's B goes: the cap holds
+                run.snapshots = [run.snapshots[i] for i in keep]
         return led
 
     led = barrier_snapshot([h.state() for h in handles])
@@ -535,7 +541,7 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
         plan = barrier_plan(run.states, config)
         if plan:
             run.stiff = next(iter(plan.values())).stiffness
-        list(executor.map(lambda h: h.iterate(iterations, plan.get(h.cell)), handles))
+        list(executor.map(lambda h, plan=plan: h.iterate(iterations, plan.get(h.cell)), handles))
         # transferEnergy at the barrier
         incoming = {h.cell: h.collect() for h in handles}
         outgoing = mode.transfer(incoming, boundaries)
@@ -620,9 +626,9 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     cell_size = divide.cell_size or patches.scale / 128.0
     # Boundary rectangles stop at the scene's box: no ray can leave the box and come
     # back, and portal cells reaching past the outer walls would re-emit light outside
-    boundaries = []
+    boundaries: list[Boundary] = []
     lo_box, hi_box = patches.bounds
-    for i, f in enumerate(part.faces):
+    for f in part.faces:
         u, v = (f.axis + 1) % 3, (f.axis + 2) % 3
         lo = (max(f.lo[0], lo_box[u]), max(f.lo[1], lo_box[v]))
         hi = (min(f.hi[0], hi_box[u]), min(f.hi[1], hi_box[v]))
@@ -733,6 +739,7 @@ def checkpoint_arrays(sub: Subscene) -> dict:
                            sub.twin_blocks], np.int64),
         "trace_seconds": np.array([sub.stats.trace_seconds]),
         "back_by_obj": sub.back_by_obj,
+        "noise_diff": sub.noise.diff, "noise_unshot": sub.noise.unshot,  # the half-solutions (noise.py)
         "rng_state": np.frombuffer(rng, np.uint8),
         # the error estimate's half-solution difference: it also splits each shot's power
         "noise_diff": sub.noise.diff, "noise_unshot": sub.noise.unshot,
@@ -746,7 +753,7 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
     """Rebuild a subscene from ``subscene_arrays`` (plus ``checkpoint_arrays`` to resume)."""
     p = Patches(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
                 arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy(),
-                twin=arrays.get("twin"))
+                **({"twin": arrays["twin"]} if "twin" in arrays else {}))
     sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode, local_target)
     if "ledger" in arrays:  # resume from a checkpoint
         for a, row in zip(ACCOUNTS + MAGNITUDES, arrays["ledger"]):
@@ -757,6 +764,10 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
         sub.stats.shots, sub.stats.rays, sub.stats.batches, sub.twins_delivered, sub.twin_blocks = stats[:5]
         sub.stats.trace_seconds = float(arrays["trace_seconds"][0])
         sub.back_by_obj = np.array(arrays["back_by_obj"], np.float64)
+        if "noise_diff" in arrays:
+            sub.noise.diff = np.array(arrays["noise_diff"], np.float64)
+            sub.noise.unshot = np.array(arrays["noise_unshot"], np.float64)
+            sub.noise.resync(sub.patches)
         sub.rng.bit_generator.state = json.loads(bytes(arrays["rng_state"]).decode())
         if "noise_diff" in arrays:
             sub.noise.diff = np.array(arrays["noise_diff"], np.float64)
