@@ -33,7 +33,7 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
 
 
 def read_texture(path: str) -> np.ndarray:
-    """(H, W, 3) float64 linear RGB of an image file; raises OSError naming the file.
+    """(H, W, 3) float32 linear RGB of an image file (12 bytes a texel); raises OSError naming the file.
 
     Grey images are repeated to three channels; alpha and further channels are dropped.
     """
@@ -49,15 +49,15 @@ def read_texture(path: str) -> np.ndarray:
         inp.close()
     if pixels is None or spec.width < 1 or spec.height < 1:
         raise OSError(f"cannot read texture {path}: no pixels")
-    img = np.asarray(pixels, np.float64).reshape(spec.height, spec.width, spec.nchannels)
+    img = np.asarray(pixels, np.float32).reshape(spec.height, spec.width, spec.nchannels)
     img = np.repeat(img[:, :, :1], 3, axis=2) if spec.nchannels < 3 else img[:, :, :3]
     space = str(spec.getattribute("oiio:ColorSpace") or "").lower()
     encoded = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.INT8, oiio.INT16)
     if encoded and "lin" not in space:
-        img = srgb_to_linear(np.clip(img, 0.0, 1.0))
+        img = srgb_to_linear(np.clip(img, 0.0, 1.0)).astype(np.float32)
     if not np.isfinite(img).all():
         raise OSError(f"cannot use texture {path}: it holds non-finite values")
-    return np.clip(img, 0.0, None)
+    return np.clip(img, 0.0, None).astype(np.float32, copy=False)
 
 
 def _grid_centroids(k: np.ndarray, m: np.ndarray) -> np.ndarray:
@@ -87,7 +87,7 @@ def uv_means(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     t = len(uv)
     out = np.empty((t, 3))
     ok = np.isfinite(uv).all(axis=(1, 2))
-    out[~ok] = flat.mean(axis=0)
+    out[~ok] = flat.mean(axis=0, dtype=np.float64)
     col = np.floor(uv[..., 0] * w)
     row = np.floor((1.0 - uv[..., 1]) * h)
     one = ok & (col.min(axis=1) == col.max(axis=1)) & (row.min(axis=1) == row.max(axis=1))
