@@ -192,10 +192,13 @@ def _point_to_square(x, y, h=1.0):
 def test_open_floor_divided_matches_unsplit_and_the_closed_form():
     """Binned twins lose light where a boundary crosses open space (re-emitted within a bin, a
     ray that crossed a plane at a grazing angle leaves it up to 29 degrees off, toward the
-    floor's edge and out); exact forwarding, the default, continues each ray unchanged."""
+    floor's edge and out); exact forwarding, the default, continues each ray unchanged.
+
+    Both runs shoot the direct light (``direct=False``): divided runs do not gather it, and
+    this compares the division, not the gather.  The per-patch RMS error against the closed
+    form varies by +-8% from seed to seed here, so it is averaged over three."""
     g = (np.arange(200) + 0.5) / 200
     exact_mean = 0.7 * 10.0 * _point_to_square(*np.meshgrid(g, g)).mean()  # 1.3988
-    cfg = SolverConfig(tol=1e-3, rays_per_power=1e6, seed=4)
 
     def floor_stats(p, floor):
         mean = np.average(p.radiosity[floor, 0], weights=p.area[floor])
@@ -203,17 +206,22 @@ def test_open_floor_divided_matches_unsplit_and_the_closed_form():
         truth = 0.7 * 10.0 * _point_to_square(c[:, 0], c[:, 1])
         return mean, rms_error(p.radiosity[floor, :1], truth[:, None], p.area[floor])
 
-    p, floor = _open_floor()
-    Solver(p, cfg).run()
-    m1, e1 = floor_stats(p, floor)
-    assert abs(m1 - exact_mean) < 0.01 * exact_mean, (m1, exact_mean)
     assert DivideConfig().mode == "exact"
-    q, _ = _open_floor()
-    run, subs, boundaries, part = solve_divided(q, cfg, DivideConfig(subscenes=16))
-    assert len(subs) == 16 and run.ledger.imported.sum() > 0 and max(run.barrier_closures) < 1e-10
-    m16, e16 = floor_stats(q, floor)
-    assert abs(m16 - m1) < 0.01 * m1 and abs(m16 - exact_mean) < 0.01 * exact_mean, (m16, m1, exact_mean)
-    assert e16 < 1.1 * e1, (e16, e1)  # RMS error per patch against the closed form
+    e1, e16 = [], []
+    for seed in (5, 6, 7):
+        cfg = SolverConfig(tol=1e-3, rays_per_power=1e6, seed=seed, direct=False)
+        p, floor = _open_floor()
+        Solver(p, cfg).run()
+        m1, e = floor_stats(p, floor)
+        e1.append(e)
+        assert abs(m1 - exact_mean) < 0.01 * exact_mean, (m1, exact_mean)
+        q, _ = _open_floor()
+        run, subs, boundaries, part = solve_divided(q, cfg, DivideConfig(subscenes=16))
+        assert len(subs) == 16 and run.ledger.imported.sum() > 0 and max(run.barrier_closures) < 1e-10
+        m16, e = floor_stats(q, floor)
+        e16.append(e)
+        assert abs(m16 - m1) < 0.01 * m1 and abs(m16 - exact_mean) < 0.01 * exact_mean, (m16, m1, exact_mean)
+    assert np.mean(e16) < 1.1 * np.mean(e1), (e16, e1)  # RMS error per patch against the closed form
     # the paper's binned twins, same cut: the bias this test guards against
     b, _ = _open_floor()
     solve_divided(b, cfg, DivideConfig(subscenes=16, mode="binned"))

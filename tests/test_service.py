@@ -128,6 +128,34 @@ def test_killed_worker_resumes_from_the_last_checkpoint(office, in_process, tmp_
     assert np.allclose(npz(files)["patch_B"], b_ref, rtol=1e-12, atol=1e-15)
 
 
+def test_over_decomposed_job_survives_a_killed_worker(office, tmp_path):
+    """More subscenes than workers (4 on 2): each worker holds two; one is killed after the
+    first barrier, the survivor takes all four and the result equals the undisturbed
+    in-process run with 4 subscenes."""
+    _, p, _ = prepare(office / "office.obj")
+    run, *_ = solve_divided(p, SolverConfig(tol=0.005, seed=3), DivideConfig(subscenes=4))
+    with LocalCluster(workers=2, data=tmp_path) as cluster:
+        job = submit(cluster.address, office, "office.obj", {"tol": 0.005, "seed": 3}, {"subscenes": 4})
+        killed, placed = [], []
+
+        def on_progress(pr):
+            if pr.barrier == 1 and not killed and pr.job.state == "running":
+                placed.extend(s.worker for s in pr.subscenes)
+                victim = pr.subscenes[0].worker
+                cluster.kill_worker(cluster.worker_ports.index(int(victim.rsplit(":", 1)[1])))
+                killed.append(victim)
+
+        progress = watch(cluster.address, job.job_id, on_progress)
+        files = fetch(cluster.address, job.job_id)
+    final = progress[-1]
+    assert killed and final.job.state == "done", final.job.error
+    assert len(placed) == 4 and len(set(placed)) == 2  # over-decomposed: two subscenes per worker
+    assert {s.worker for s in final.subscenes} == set(placed) - set(killed)  # one survivor holds all
+    assert sum(s.reassigned for s in final.subscenes) == placed.count(killed[0]) == 2
+    assert final.ledger.closure < 1e-10 and final.barrier == run.barriers
+    assert np.allclose(npz(files)["patch_B"], p.radiosity, rtol=1e-12, atol=1e-15)
+
+
 def test_stiff_job_overshoots_across_workers_and_survives_a_kill(tmp_path):
     """rho = 0.99 furnace cut in two: the barrier plan (the job's ambient overshoot and ray
     factor) travels to the workers, a worker killed after the first barrier is replaced, and
