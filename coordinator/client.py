@@ -23,17 +23,18 @@ import grpc
 from dcrad.config import SolverConfig
 from dcrad.errors import DcradError, SceneFormatError
 from dcrad.objfile import inside_folder, read_mtl
+from dcrad.progress import error_text, progress_fraction
 from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import FileAssembler, file_chunks, safe_relpath
 
+from .rpc import MAX_MESSAGE
+
 __all__ = ["DEFAULT_ADDRESS", "channel", "scene_files", "submit", "watch", "fetch", "cancel", "list_jobs",
            "rpc_message", "add_client_commands"]
 
 DEFAULT_ADDRESS = "127.0.0.1:50051"
-#: gRPC message size limit both ways: file chunks are 1 MB, leave room
-MAX_MESSAGE = 8 * 1024 * 1024
 #: attempts per call on UNAVAILABLE (gRPC caps it at 5; < 2 disables retries)
 RETRY_ATTEMPTS = 4
 #: deadline of the short unary calls (Cancel, ListJobs), seconds
@@ -48,7 +49,7 @@ def resolve_address(address: str | None = None) -> str:
 def channel(address: str, attempts: int | None = None) -> grpc.Channel:
     """An insecure channel retrying UNAVAILABLE with exponential backoff, 8 MB messages."""
     attempts = RETRY_ATTEMPTS if attempts is None else attempts
-    method = {"name": [{"service": "dcrad.v1.Coordinator"}]}
+    method: dict[str, object] = {"name": [{"service": "dcrad.v1.Coordinator"}]}
     if attempts >= 2:
         method["retryPolicy"] = {"maxAttempts": int(attempts), "initialBackoff": "0.2s", "maxBackoff": "2s",
                                  "backoffMultiplier": 2, "retryableStatusCodes": ["UNAVAILABLE"]}
@@ -245,7 +246,8 @@ class WatchBar:
         self.tol, self.width = max(tol, 1e-300), width
         self.stream = stream or sys.stderr
         self.enabled = force or getattr(self.stream, "isatty", lambda: False)()
-        self.prev = None  # (elapsed, rays, residual) of the previous Progress
+        self.prev: tuple[float, int, float] | None = None  # (elapsed, rays, residual) of the previous Progress
+        self.first_error: float | None = None  # the first estimated error seen (the bar's start)
         self.drawn = False
 
     def line(self, p: pb.Progress) -> str:
@@ -257,10 +259,21 @@ class WatchBar:
             if 0 < r < self.prev[2]:
                 eta = max(0.0, math.log(r / self.tol) / (math.log(self.prev[2] / r) / dt))
         self.prev = (t, p.rays, r)
-        frac = 1.0 if r <= self.tol or self.tol >= 1 else max(0.0, min(1.0, math.log(r) / math.log(self.tol)))
+        if p.HasField("error") and p.error.rms_refl > 0:
+            # the job's estimated error (noise + bias) towards its accuracy target
+            e = p.error
+            if self.first_error is None:
+                self.first_error = e.rms_refl
+            frac = progress_fraction(r, self.tol, e.rms_refl, p.accuracy, self.first_error)
+            what = f"{error_text(e.rms_refl, e.noise_refl, e.bias_refl, p.accuracy)} | residual {r:.2e}"
+            if p.accuracy > 0:
+                eta = math.inf
+        else:
+            frac = progress_fraction(r, self.tol)
+            what = f"residual {r:.2e} -> {self.tol:.1e}"
         done = int(round(frac * self.width))
         return (f"[{'#' * done}{'-' * (self.width - done)}] {100 * frac:3.0f}% barrier {p.barrier} | "
-                f"residual {r:.2e} -> {self.tol:.1e} | {rate / 1e6:.2f} Mrays/s | {_hms(t)} | ETA {_hms(eta)}")
+                f"{what} | {rate / 1e6:.2f} Mrays/s | {_hms(t)} | ETA {_hms(eta)}")
 
     def __call__(self, p: pb.Progress) -> None:
         text = self.line(p)
@@ -350,7 +363,11 @@ def cmd_fetch(args) -> int:
 @_handled
 def cmd_cancel(args) -> int:
     job = cancel(resolve_address(args.coordinator), args.job)
-    print(f"dcrad: job {job.job_id or args.job} {job.state}")
+    if job.state in TERMINAL:
+        print(f"dcrad: job {job.job_id or args.job} had already ended ({job.state}); nothing to cancel")
+    else:
+        print(f"dcrad: job {job.job_id or args.job}: cancel requested; it stops at its next barrier and keeps "
+              f"its results so far (`dcrad watch` follows it to the end)")
     return 0
 
 
@@ -378,7 +395,8 @@ def add_client_commands(subparsers) -> None:
         return p
 
     def progress_flag(p):
-        p.add_argument("--progress", action="store_true", help="draw the progress bar even when stderr is not a terminal")
+        p.add_argument("--progress", action="store_true",
+                       help="draw the progress bar even when stderr is not a terminal")
 
     p = command("submit", cmd_submit, "upload a scene to the coordinator as a job; prints the job id")
     p.add_argument("scene", help="an .obj/.gltf/.glb file (with its .mtl, buffers, images) or a built-in scene")
@@ -390,6 +408,9 @@ def add_client_commands(subparsers) -> None:
     progress_flag(p)
 
     p = command("watch", cmd_watch, "follow a job's progress until it ends")
+    p.description = ("Follow a job's progress until it ends. Exit code: 0 when the job is done; 1 when it "
+                     "failed or was cancelled (a cancelled job keeps its results: `dcrad fetch` them); 2 for "
+                     "an unknown job or an unreachable coordinator; 130 on Ctrl-C (the job keeps running).")
     p.add_argument("job", help="job id")
     p.add_argument("--tol", type=float, default=d.tol, help=f"tolerance the bar counts towards (default {d.tol})")
     progress_flag(p)

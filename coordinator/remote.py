@@ -31,9 +31,10 @@ from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_from_pb, plan_fields
 
+from .rpc import MAX_MESSAGE
+
 log = logging.getLogger("dcrad.coordinator")
 
-MAX_MESSAGE = 8 * 1024 * 1024
 #: gRPC codes that mean "this worker is gone", not "the request is bad"
 LOST = {grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.NOT_FOUND,
         grpc.StatusCode.CANCELLED, grpc.StatusCode.UNKNOWN, grpc.StatusCode.INTERNAL}
@@ -101,7 +102,7 @@ class WorkerPool:
                 w.channel.close()
                 w.channel = None
 
-    def pick(self, exclude: set[str] = frozenset()) -> WorkerEntry:
+    def pick(self, exclude: frozenset[str] | set[str] = frozenset()) -> WorkerEntry:
         """The live worker with the most spare capacity (ties: registration order)."""
         with self._lock:
             cands = [w for w in self.workers.values() if w.alive and w.address not in exclude]
@@ -204,11 +205,16 @@ class RemoteSubscene:
                     self.job_id, self.cell, old.address if old else "?", exc.code().name)
         self.place()
 
+    def _stub(self) -> pb_grpc.WorkerStub:
+        if self.worker is None:
+            raise NoWorkers(f"job {self.job_id} cell {self.cell} is on no worker")
+        return self.worker.stub()
+
     # -- the handle interface ------------------------------------------------------
     def _iterate_once(self, n: int, plan=None):
         t0 = time.perf_counter()
         request = pb.IterateRequest(key=self.key, batches=n, **plan_fields(plan))
-        replies = self.worker.stub().Iterate(request, timeout=self.timeout)
+        replies = self._stub().Iterate(request, timeout=self.timeout)
         arrays, status = _gather(replies)
         self.rpc_seconds["iterate"] += time.perf_counter() - t0
         return boundary_mode(self.mode).buffer.from_arrays(arrays), status
@@ -242,7 +248,7 @@ class RemoteSubscene:
                         yield pb.DeliverRequest(array=c)
 
                 t0 = time.perf_counter()
-                self._status = self.worker.stub().Deliver(requests(), timeout=self.timeout)
+                self._status = self._stub().Deliver(requests(), timeout=self.timeout)
                 t1 = time.perf_counter()
                 self.checkpoint = self._fetch_checkpoint()
                 self.rpc_seconds["deliver"] += t1 - t0
@@ -260,7 +266,7 @@ class RemoteSubscene:
 
     def _fetch_checkpoint(self) -> dict:
         asm = ArrayAssembler()
-        for c in self.worker.stub().Checkpoint(self.key, timeout=self.timeout):
+        for c in self._stub().Checkpoint(self.key, timeout=self.timeout):
             asm.add(c)
         return asm.result()
 
@@ -283,7 +289,7 @@ class RemoteSubscene:
     def drop(self) -> None:
         if self.worker is not None:
             try:
-                self.worker.stub().Drop(self.key, timeout=10)
+                self._stub().Drop(self.key, timeout=10)
             except grpc.RpcError:
                 pass
             self.pool.release(self.worker)

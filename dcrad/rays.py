@@ -1,8 +1,11 @@
 """Ray casting: one module owns Embree, float32 conversion and the self-hit offset.
 
 ``Tracer(triangles)`` builds an Embree scene once (embreex), then answers many
-batched queries.  Coordinates are shifted to the box centre before the float32
-conversion so that kilometre-wide scenes keep their precision.  A numpy
+batched queries.  Coordinates are shifted to the box centre and scaled by the
+power of two nearest to 1/diagonal before the float32 conversion, so that
+kilometre-wide scenes keep their precision and a scene at 1e30 m or 1e-30 m
+traces like one at 1 m (a power of two is exact: at ordinary sizes the float32
+coordinates are the same numbers, scaled).  A numpy
 fallback with the same interface (brute-force Moller-Trumbore, for tiny scenes
 and for checking Embree) is used when embreex cannot be imported or when asked.
 """
@@ -49,8 +52,10 @@ class Tracer:
         else:
             lo = hi = np.zeros(3)
         self.center = 0.5 * (lo + hi)
-        self.scale = max(float(np.linalg.norm(hi - lo)), 1e-30)
-        local = tri - self.center
+        self.scale = max(float(np.linalg.norm(hi - lo)), 1e-300)
+        #: exact float32 conversion at any size: Embree sees a box of diagonal in [0.7, 1.4]
+        self.unit = float(np.ldexp(1.0, int(np.round(np.log2(self.scale))))) if self.n else 1.0
+        local = (tri - self.center) / self.unit
         if backend == "embree":
             self._scene = _rtcs.EmbreeScene()
             if self.n:
@@ -61,17 +66,21 @@ class Tracer:
             self._tri = local
 
     # ------------------------------------------------------------------------------
-    def intersect(self, origins: np.ndarray, dirs: np.ndarray):
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray, normals: bool = False):
         """Closest hit of each ray.
 
         origins, dirs : (m, 3) float (dirs need not be unit)
-        returns (prim (m,) int64, MISS where nothing is hit; t (m,) float64 in units of |dir|)
+        returns (prim (m,) int64, MISS where nothing is hit; t (m,) float64 in units of |dir|),
+        and with ``normals`` also ng (m, 3) float32: the hit triangle's geometric normal,
+        not unit, on the side of its right-hand-rule normal (zeros for a miss).  Embree
+        computes it anyway; reading it per ray is cheaper than gathering patch normals
+        at random rows (shoot.trace's front/back test).
         """
-        origins = np.asarray(origins, np.float64) - self.center
-        dirs = np.asarray(dirs, np.float64)
+        origins = (np.asarray(origins, np.float64) - self.center) / self.unit
         m = len(origins)
         if m == 0 or self.n == 0:
-            return np.full(m, MISS, np.int64), np.full(m, np.inf)
+            empty = (np.full(m, MISS, np.int64), np.full(m, np.inf))
+            return empty + (np.zeros((m, 3), np.float32),) if normals else empty
         if self.backend == "embree":
             res = self._scene.run(
                 np.ascontiguousarray(origins, np.float32),
@@ -79,20 +88,26 @@ class Tracer:
                 output=1,
             )
             prim = res["primID"].astype(np.int64)
-            t = res["tfar"].astype(np.float64)
+            t = res["tfar"].astype(np.float64) * self.unit
             t[prim < 0] = np.inf
             prim[prim < 0] = MISS
-            return prim, t
-        return _numpy_intersect(self._tri, origins, dirs)
+            return (prim, t, res["Ng"]) if normals else (prim, t)
+        prim, t = _numpy_intersect(self._tri, origins, np.asarray(dirs, np.float64))
+        if not normals:
+            return prim, t * self.unit
+        tri = self._tri[np.maximum(prim, 0)]
+        ng = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).astype(np.float32)
+        ng[prim == MISS] = 0.0
+        return prim, t * self.unit, ng
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, tmax: np.ndarray) -> np.ndarray:
         """(m,) bool: is anything hit with 0 < t < tmax (t in units of |dir|)?"""
-        origins = np.asarray(origins, np.float64) - self.center
+        origins = (np.asarray(origins, np.float64) - self.center) / self.unit
         dirs = np.asarray(dirs, np.float64)
         m = len(origins)
         if m == 0 or self.n == 0:
             return np.zeros(m, bool)
-        tmax = np.broadcast_to(np.asarray(tmax, np.float64), (m,))
+        tmax = np.broadcast_to(np.asarray(tmax, np.float64), (m,)) / self.unit
         if self.backend == "embree":
             res = self._scene.run(
                 np.ascontiguousarray(origins, np.float32),

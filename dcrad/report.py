@@ -59,7 +59,7 @@ class RunBooks:
     def of_solver(cls, solver, timings: dict[str, float] | None = None) -> "RunBooks":
         """The books of a single ``Solver`` run."""
         return cls(solver.patches, solver.config, solver.ledger, solver.stats, list(solver.snapshots),
-                   list(solver.snapshot_B), solver.back_by_obj.copy(), list(solver.choices), dict(timings or {}),
+                   solver.snapshot_B, solver.back_by_obj.copy(), list(solver.choices), dict(timings or {}),
                    estimate=solver.estimate())
 
     def residual(self) -> float:

@@ -53,14 +53,15 @@ import numpy as np
 
 from .config import SolverConfig
 from .accuracy import by_accuracy, noise_floor, resolve
+from .arrays import colsum, rowsum
 from .energy import Ledger
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
 from .report import escaped_light, flipped_normals
-from .direct import gather_direct, shadow_rays_for
+from .direct import gather_direct, landing_rays, noise_against_shooting, rescale_to_landed, shadow_rays_for
 from .shoot import deposit, patch_rays, ray_offset, trace
-from .shooters import ShooterPool
+from .shooters import ShooterPool, pool_size, spatial_order
 from .snapshots import SnapshotStore
 
 __all__ = ["Solver", "Snapshot", "Stiffness", "stiffness", "solve"]
@@ -68,9 +69,6 @@ __all__ = ["Solver", "Snapshot", "Stiffness", "stiffness", "solve"]
 #: batches between exact recounts of the ledger's unshot sums; in between they are
 #: kept incrementally from the rows each batch touched (shooters and rows hit)
 RECOUNT_EVERY = 256
-#: the shooter pool holds this many times max_shooters rows (shooters.py): one
-#: O(patches) rebuild every (POOL_FACTOR - 1) batches or more
-POOL_FACTOR = 16
 
 
 #: the report's line for a scene whose rho and E are grey
@@ -148,7 +146,7 @@ class Solver:
         self._next_snapshot = 0
         self._snapshot_factor = self.config.snapshot_factor  #: squared each time the store is thinned
         #: the candidates for the top-K shooters (shooters.py); ``full_selection``: sort everything
-        self.pool = ShooterPool(patches, POOL_FACTOR * self.config.max_shooters)
+        self.pool = ShooterPool(patches, pool_size(len(patches), self.config.max_shooters))
         self.full_selection = False
         #: batches between exact recounts of the ledger's unshot sums (0: never)
         self.recount_every = RECOUNT_EVERY
@@ -196,7 +194,7 @@ class Solver:
         """
         cfg = self.config
         floor = cfg.min_rays if min_rays is None else min_rays
-        scalar = np.abs(power).sum(axis=1)
+        scalar = rowsum(np.abs(power))
         n = len(scalar)
         if n == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -228,12 +226,16 @@ class Solver:
             amounts = self.shoot_amounts(st)
             power = amounts * p.area[:, None]
             idx, counts = self.rank(power, floor, ray_factor=st.ray_factor)
-            return idx, counts, power[idx], amounts[idx]
-        rows, _ = self.pool.candidates(self.config.max_shooters, self._negligible)
-        amounts = p.unshot[rows]
-        power = amounts * p.area[rows, None]
-        sel, counts = self.rank(power, floor, ray_factor=st.ray_factor)
-        return rows[sel], counts, power[sel], amounts[sel]
+            power, amounts = power[idx], amounts[idx]
+        else:
+            rows, _ = self.pool.candidates(self.config.max_shooters, self._negligible)
+            amounts = p.unshot[rows]
+            power = amounts * p.area[rows, None]
+            sel, counts = self.rank(power, floor, ray_factor=st.ray_factor)
+            idx, power, amounts = rows[sel], power[sel], amounts[sel]
+        # shoot neighbours after each other: coherent rays for Embree (shooters.spatial_order)
+        order = spatial_order(p, idx)
+        return idx[order], counts[order], power[order], amounts[order]
 
     # -- the ledger's unshot sums, kept incrementally -------------------------------
     def book_unshot(self, rows: np.ndarray, before: np.ndarray) -> None:
@@ -244,8 +246,8 @@ class Solver:
         after = self.patches.unshot[rows]
         area = self.patches.area[rows, None]
         led = self.ledger
-        led.unshot = led.unshot + ((after - before) * area).sum(axis=0)
-        led.unshot_abs = led.unshot_abs + ((np.abs(after) - np.abs(before)) * area).sum(axis=0)
+        led.unshot = led.unshot + colsum((after - before) * area)
+        led.unshot_abs = led.unshot_abs + colsum((np.abs(after) - np.abs(before)) * area)
 
     def release(self, rows: np.ndarray, amounts: np.ndarray) -> None:
         """Shooters ``rows`` (distinct) give up ``amounts`` (k,3) W/m^2 of unshot radiosity."""
@@ -275,7 +277,7 @@ class Solver:
         self._since_recount += 1
         if self.recount_every and self._since_recount >= self.recount_every:
             self.recount()
-        self.tallies += np.stack([np.abs(shot).sum(axis=0), tally.lost + np.abs(extra_lost), tally.landed, tally.kept])
+        self.tallies += np.stack([colsum(np.abs(shot)), tally.lost + np.abs(extra_lost), tally.landed, tally.kept])
         self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
 
     # -- the three phases every kind of step shares -----------------------------------
@@ -321,8 +323,11 @@ class Solver:
     def gather(self) -> int:
         """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.
 
-        The emitters' unshot power is spent, receivers keep rho of what the gather
-        says arrives (booked like a batch), and shooting goes on with the reflected light.
+        The emitters' power is spent: a modest number of their ordinary rays books
+        how much lands, escapes or meets back faces (exactly, as shooting would),
+        and the gather distributes the landed power over the receivers' fronts.
+        Receivers keep rho of it; shooting goes on with the reflected light.  Kept
+        only when it is quieter than shooting the emitters (``noise_against_shooting``).
         """
         p = self.patches
         cfg = self.config
@@ -331,17 +336,35 @@ class Solver:
             return 0
         amounts = p.unshot[emitters].copy()
         power = amounts * p.area[emitters, None]
-        shadow = cfg.shadow_rays or shadow_rays_for(cfg.accuracy if cfg.accuracy > 0 else 0.05)
+        shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
         t0 = time.perf_counter()
-        tally = gather_direct(p, self.tracer, emitters, power, shadow, self.rng, ray_offset(p), cfg.batch_rays)
+        gathered = gather_direct(p, self.tracer, emitters, power, shadow, self.rng, ray_offset(p), cfg.batch_rays)
         self.stats.trace_seconds += time.perf_counter() - t0
+        quiet, loud = noise_against_shooting(p, gathered, power, self.power_per_ray)
+        ratio = math.sqrt(quiet / loud) if loud > 0 else math.inf
+        if not ratio < 1.0:
+            self.choices.append(f"direct light shot, not gathered: {shadow} shadow rays per patch gave "
+                                f"{ratio:.2f}x the noise shooting the emitters would (emitters next to their "
+                                f"receivers); the {gathered.rays} shadow rays are counted")
+            return self.counted(0, gathered.rays)
+        # the emitters' own rays: how much of their power lands (the books), not where
+        total = power.sum(axis=1)
+        n_land = landing_rays(shadow, len(gathered.hit), len(emitters), cfg.batch_rays)
+        counts = np.maximum(np.ceil(n_land * total / total.sum()), 2).astype(np.int64)
+        t0 = time.perf_counter()
+        shot = self.fire(patch_rays(p, emitters, counts, power, self.rng), t0)
+        tally = rescale_to_landed(gathered, shot, p)
         self.release(emitters, amounts)
         self.noise.shot(emitters)
+        if tally is None:  # the gather missed light the rays found: keep the rays' own result
+            self.commit(None, shot, shot=power)
+            self.choices.append("direct light shot: the gather found no light where the emitters' rays landed some")
+            return self.counted(len(emitters), gathered.rays + int(counts.sum()))
         self.commit(None, tally, shot=power)
         self.choices.append(f"direct light gathered with {shadow} shadow rays per receiving patch (next-event "
-                            f"estimation); {float(tally.escaped.sum()):.6g} W of the emitted power that by "
-                            f"the gather's estimate lands on no front face is booked as escaped")
-        return self.counted(len(emitters), tally.rays)
+                            f"estimation, {ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
+                            f"the emitters book how much of it lands, escapes or meets back faces")
+        return self.counted(len(emitters), gathered.rays + int(counts.sum()))
 
     # == the loop ==================================================================
     def elapsed(self) -> float:
@@ -440,7 +463,16 @@ class Solver:
         if b.time <= a.time or b.residual >= a.residual:
             return float("nan")
         rate = math.log(a.residual / b.residual) / (b.time - a.time)
-        return max(0.0, math.log(now / max(self.config.tol, 1e-300)) / rate)
+        goal = self.config.tol
+        if by_accuracy(self.config):
+            # the bias falls with the residual; the estimate meets the target once
+            # sqrt(noise^2 + bias^2) <= accuracy (nan when the noise alone is above it)
+            est = self.estimate()
+            room = self.config.accuracy ** 2 - est.noise_refl ** 2
+            if room <= 0 or not math.isfinite(est.bias_refl):
+                return float("nan")
+            goal = now * min(1.0, math.sqrt(room) / max(est.bias_refl, 1e-300))
+        return max(0.0, math.log(now / max(goal, 1e-300)) / rate)
 
     def warnings(self) -> list[str]:
         """Warnings about the run: flipped normals (back-face share of shot power), escaped light."""

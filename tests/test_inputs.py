@@ -1,0 +1,147 @@
+"""Inputs that used to go silently wrong, or run away, get the right answer or one clear line.
+
+Each case runs on the in-process path and, where it exists, on the service path (a real
+coordinator and worker): coordinates near 1e30 and 1e-30 m solve like the same scene in
+metres; a light facing away from everything warns; ``--workers`` and ``--subscenes``
+outside what the machine and the scene allow exit 2 with one line (INVALID_ARGUMENT on
+the service); ``dcrad scenes`` takes the parameters ``solve`` takes; a worker restarted
+on the same address shows its new name.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+
+import scenes
+from coordinator.embedded import LocalCluster, max_local_workers
+from coordinator.remote import WorkerPool
+from dcrad.config import SolverConfig
+from dcrad.pipeline import solve_to
+from test_service import fetch, npz, submit, watch
+
+CORNELL_PATCH = 0.06  #: m: a coarse mesh, for speed
+
+
+def dcrad(*args, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dcrad.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=600)
+
+
+def reflected_mean(b: np.ndarray, e: np.ndarray, area: np.ndarray) -> float:
+    """Area-weighted mean reflected radiosity B - E (W/m^2)."""
+    return float(((b - e).mean(axis=1) * area).sum() / area.sum())
+
+
+@pytest.fixture(scope="module")
+def cornell(tmp_path_factory) -> Path:
+    return scenes.write_builtin("cornell", tmp_path_factory.mktemp("cornell"))
+
+
+@pytest.fixture(scope="module")
+def cornell_metres(cornell, tmp_path_factory) -> float:
+    out = tmp_path_factory.mktemp("cornell-1m")
+    solve_to(cornell, out, SolverConfig(seed=2, tol=0.01), patch_size=CORNELL_PATCH)
+    z = np.load(out / "radiosity.npz")
+    return reflected_mean(z["patch_B"], z["patch_emission"], z["patch_area"])
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    with LocalCluster(workers=1, data=tmp_path_factory.mktemp("inputs-cluster"), web=False) as c:
+        yield c
+
+
+def _away_scene(folder: Path, facing: str) -> Path:
+    """A 2 m floor under a 0.5 m light at 1 m whose front faces ``facing`` ("down" or "up")."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "s.mtl").write_text("newmtl grey\nKd 0.5 0.5 0.5\nnewmtl lamp\nKd 0 0 0\nKe 10 10 10\n")
+    light = "f 5 6 7\nf 5 7 8\n" if facing == "down" else "f 5 7 6\nf 5 8 7\n"
+    (folder / "s.obj").write_text(
+        "mtllib s.mtl\n"
+        "v -1 0 -1\nv -1 0 1\nv 1 0 1\nv 1 0 -1\n"  # floor, front up
+        "v -0.25 1 -0.25\nv 0.25 1 -0.25\nv 0.25 1 0.25\nv -0.25 1 0.25\n"
+        "o floor\nusemtl grey\nf 1 2 3\nf 1 3 4\n"
+        f"o lamp\nusemtl lamp\n{light}")
+    return folder / "s.obj"
+
+
+@pytest.mark.parametrize("scale", [1e30, 1e-30])
+def test_extreme_coordinates_solve_like_metres(cornell, cornell_metres, tmp_path, scale, cluster):
+    """Before: B = E everywhere (every ray escaped in float32), exit 0."""
+    out = tmp_path / "in-process"
+    report = solve_to(cornell, out, SolverConfig(seed=2, tol=0.01), patch_size=CORNELL_PATCH * scale, scale=scale)
+    z = np.load(out / "radiosity.npz")
+    # B - E scales like E (W/m^2 does not depend on the unit of length)
+    got = reflected_mean(z["patch_B"], z["patch_emission"], z["patch_area"])
+    assert got == pytest.approx(cornell_metres, rel=0.03)
+    assert report["ledger"]["closure"] < 1e-9
+    job = submit(cluster.address, cornell.parent, cornell.name, {"seed": 2, "tol": 0.01,
+                                                               "patch_size": CORNELL_PATCH * scale,
+                                                               "scale": scale}, {"subscenes": 1})
+    final = watch(cluster.address, job.job_id)[-1]
+    assert final.job.state == "done", final.job.error
+    zs = npz(fetch(cluster.address, job.job_id))
+    assert reflected_mean(zs["patch_B"], zs["patch_emission"], zs["patch_area"]) == pytest.approx(cornell_metres,
+                                                                                                 rel=0.03)
+
+
+@pytest.mark.parametrize("facing", ["up", "down"])
+def test_light_facing_away_warns(tmp_path, facing, cluster):
+    path = _away_scene(tmp_path / "scene", facing)
+    report = solve_to(path, tmp_path / "out", SolverConfig(seed=1, tol=0.01))
+    warned = [w for w in report["warnings"] if "escaped the scene" in w]
+    job = submit(cluster.address, path.parent, path.name, {"seed": 1, "tol": 0.01}, {"subscenes": 1})
+    final = watch(cluster.address, job.job_id)[-1]
+    assert final.job.state == "done", final.job.error
+    remote = json.loads(bytes(fetch(cluster.address, job.job_id)["report.json"]))
+    remote_warned = [w for w in remote["warnings"] if "escaped the scene" in w]
+    if facing == "up":  # nothing above: all of it escapes
+        assert warned and "lamp" in warned[0] and warned[0].startswith("100.0%")
+        assert remote_warned == warned
+    else:  # most of it lands on the floor
+        assert not warned and not remote_warned
+
+
+@pytest.mark.parametrize("flag", [("--workers", "-1"), ("--workers", "100000"), ("--subscenes", "-3")])
+def test_bad_worker_and_subscene_counts_are_one_line(tmp_path, flag):
+    r = dcrad("solve", "cornell", *flag, "--out", str(tmp_path / "o"), cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("dcrad: error: ") and flag[0] in lines[0], r.stderr
+    if flag == ("--workers", "100000"):
+        assert f"at most {max_local_workers()}" in lines[0]
+
+
+def test_too_many_subscenes_for_the_scene(tmp_path, cluster):
+    """Before: --subscenes 1000 on a 4-triangle scene ran for minutes."""
+    path = _away_scene(tmp_path / "scene", "down")
+    r = dcrad("solve", str(path), "--workers", "0", "--subscenes", "1000", "--out", str(tmp_path / "o"))
+    assert r.returncode == 2 and "1000 subscenes" in r.stderr and "at most" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    with pytest.raises(grpc.RpcError) as e:
+        submit(cluster.address, path.parent, path.name, {}, {"subscenes": 1000})
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "1000 subscenes" in e.value.details()
+
+
+def test_scenes_takes_the_parameters_solve_takes(tmp_path):
+    r = dcrad("scenes", "office:rows=1,cols=2", "--out", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert Path(r.stdout.strip()) == tmp_path / "office.obj" and (tmp_path / "office.obj").exists()
+    for bad in ("nope", "office:rows=x", "office:colour=2"):
+        r = dcrad("scenes", bad, "--out", str(tmp_path))
+        assert r.returncode == 2 and r.stderr.startswith("dcrad: error: ") and "Traceback" not in r.stderr
+
+
+def test_a_worker_restarted_on_the_same_address_shows_its_new_name():
+    pool = WorkerPool()
+    pool.register("10.0.0.5:50052", 4, "old-container")
+    pool.register("10.0.0.5:50052", 2, "new-container")
+    (w,) = pool.workers.values()
+    assert (w.name, w.capacity) == ("new-container", 2)
