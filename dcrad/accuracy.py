@@ -1,0 +1,171 @@
+"""The accuracy target as the main knob: ray density, stop rule and passes.
+
+``SolverConfig.accuracy`` (``--accuracy``, default 0.02) is a target for the
+estimated RMS error over the RMS of the reflected light B - E (noise.py).  While
+``tol`` is 0 (its default) a run
+
+* chooses the power per ray from the patch count and the target
+  (``rays_for``; ``rays_per_power`` overrides it);
+* stops when the estimate meets the target (``stopped_by: accuracy``), or at
+  ``time_limit`` / ``max_rays``;
+* when its light is all but shot (bias below a quarter of the target) and the
+  noise is still above the target, the ray density was too low for this scene:
+  the pass stops (``noise_floor``).  ``solve_to_accuracy`` (single-subscene
+  runs) then runs an independent pass at the density that brings the blend
+  under the target and blends the passes by inverse variance, B = sum w_k B_k /
+  sum w_k with w_k = 1 / (estimated error of pass k)^2 (the half-solution
+  differences and the ledger blend alike, so the estimate and the books stay
+  exact), at most ``MAX_PASSES`` passes.  A divided run stops on the floor and
+  says so.
+
+With ``tol`` > 0 a run stops at that residual instead and ``accuracy`` is not
+used (it reads 0 in the resolved settings); ``rays_per_power`` is then 2e5
+unless given, as before the target existed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import SolverConfig
+from .energy import ACCOUNTS, MAGNITUDES
+from .noise import finite
+
+__all__ = ["by_accuracy", "resolve", "rays_for", "LEGACY_TOL", "LEGACY_RAYS_PER_POWER", "MAX_PASSES",
+           "noise_floor", "pass_target", "solve_to_accuracy", "describe", "noise_floor_note", "blend"]
+
+LEGACY_TOL = 0.01  #: residual tolerance when neither tol nor accuracy is set
+LEGACY_RAYS_PER_POWER = 2e5  #: ray density of runs that stop by tol
+#: rays_per_power = RAYS_PER_PATCH * patches / accuracy^2.  Measured noise^2 * rays_per_power
+#: / patches: Cornell 0.32 (shooting) and 0.35 (direct gather), office 0.16; with some margin
+#: so that a first pass usually meets its target (bench/RESULTS.md)
+RAYS_PER_PATCH = 0.4
+MAX_PASSES = 3  #: passes of one single-subscene run at most (the first one included)
+#: a pass is done when its bias is below this share of the target (the rest is noise)
+BIAS_SHARE = 0.25
+#: a later pass aims the blend at this share of the target
+MARGIN = 0.9
+
+
+def by_accuracy(config: SolverConfig) -> bool:
+    """True when the run stops by its error estimate (tol 0 and an accuracy target)."""
+    return config.tol == 0.0 and config.accuracy > 0.0
+
+
+def rays_for(patches: int, accuracy: float) -> float:
+    """Default ray density (rays for shooting the emitted power once) for a target.
+
+    Noise per patch falls as 1/sqrt(hits): the rays needed grow with the number
+    of patches and as 1/accuracy^2.
+    """
+    return max(RAYS_PER_PATCH * max(patches, 1) / (accuracy * accuracy), 1e3)
+
+
+def resolve(config: SolverConfig, patches: int | None = None) -> SolverConfig:
+    """The concrete settings of a run over ``patches`` patches (idempotent).
+
+    Accuracy mode keeps tol = 0 and fills in rays_per_power (when ``patches`` is
+    known); otherwise tol defaults to 0.01, rays_per_power to 2e5 and accuracy reads 0.
+    """
+    if by_accuracy(config):
+        if config.rays_per_power > 0 or patches is None:
+            return config
+        return config.replace(rays_per_power=rays_for(patches, config.accuracy))
+    return config.replace(tol=config.tol or LEGACY_TOL, accuracy=0.0,
+                          rays_per_power=config.rays_per_power or LEGACY_RAYS_PER_POWER)
+
+
+def noise_floor(estimate, accuracy: float) -> bool:
+    """A pass can do no better: its light is nearly all shot and the noise is above target."""
+    return estimate.bias_refl <= BIAS_SHARE * accuracy and estimate.noise_refl > accuracy
+
+
+def pass_target(so_far: float, accuracy: float) -> float:
+    """The error a new independent pass must reach for the blend with passes of error
+    ``so_far`` (relative) to come to MARGIN * accuracy: 1/t^2 = 1/(m a)^2 - 1/so_far^2."""
+    goal = MARGIN * accuracy
+    room = 1.0 / goal ** 2 - 1.0 / max(so_far, goal * 1.0001) ** 2
+    return 1.0 / np.sqrt(room)
+
+
+def blend(solver, saved: dict, weight_saved: float, weight_now: float) -> None:
+    """Blend ``solver``'s state with ``saved`` (``_save``) in proportion to the weights.
+
+    B, dB, the half-solution differences, the ledger and the return tallies are all
+    linear in the rays' outcomes, so the blend is a solution whose books close.
+    """
+    total = weight_saved + weight_now
+    a, b = weight_saved / total, weight_now / total
+    p, led = solver.patches, solver.ledger
+    p.radiosity = a * saved["radiosity"] + b * p.radiosity
+    p.unshot = a * saved["unshot"] + b * p.unshot
+    solver.noise.diff = a * saved["diff"] + b * solver.noise.diff
+    solver.noise.unshot = a * saved["diff_unshot"] + b * solver.noise.unshot
+    for name in ACCOUNTS + MAGNITUDES:
+        setattr(led, name, a * saved["ledger"][name] + b * getattr(led, name))
+    solver.tallies = a * saved["tallies"] + b * solver.tallies
+    solver.recount()  # |dB| sums are not linear: recount them from the blended table
+    solver.noise.resync(p)
+    solver.pool.invalidate()
+
+
+def _save(solver) -> dict:
+    p = solver.patches
+    return {"radiosity": p.radiosity.copy(), "unshot": p.unshot.copy(), "diff": solver.noise.diff.copy(),
+            "diff_unshot": solver.noise.unshot.copy(), "tallies": solver.tallies.copy(),
+            "ledger": {k: np.array(v, np.float64) for k, v in solver.ledger.as_arrays().items()}}
+
+
+def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=None, should_stop=None):
+    """Run a Solver; in accuracy mode, while a pass ends on its noise floor, run another
+    independent pass and blend (module doc).  Returns the last Solver, holding the blend;
+    its stats, time limit and ray budget count every pass.
+    """
+    from .solve import Solver  # solve imports this module (resolve, noise_floor)
+
+    solver = Solver(patches, config, tracer=tracer)
+    solver.run(on_progress=on_progress, should_stop=should_stop)
+    goal = solver.config.accuracy
+    passes = 1
+    while solver.stats.stopped_by == "noise_floor" and passes < MAX_PASSES:
+        est, cfg, done = solver.estimate(), solver.config, solver.stats
+        saved, weight = _save(solver), 1.0 / max(est.rms, 1e-300) ** 2
+        target = pass_target(est.rms_refl, goal)
+        rpp = cfg.rays_per_power * (est.noise_refl / target) ** 2 * 1.1
+        patches.reset()
+        solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target), tracer=solver.tracer)
+        solver.stats.rays, solver.stats.shots, solver.stats.batches = done.rays, done.shots, done.batches
+        solver.stats.wall_seconds, solver.stats.trace_seconds = done.wall_seconds, done.trace_seconds
+        solver.run(on_progress=on_progress, should_stop=should_stop)
+        now = solver.estimate()
+        blend(solver, saved, weight, 1.0 / max(now.rms, 1e-300) ** 2)
+        passes += 1
+        solver.config = solver.config.replace(accuracy=goal)
+        solver.choices.append(
+            f"accuracy pass {passes}: the passes before ended on their noise floor ({est.rms_refl:.4f} of the "
+            f"reflected light at {cfg.rays_per_power:.3g} rays per emitted power); an independent pass at "
+            f"{rpp:.3g} reached {now.rms_refl:.4f} and the two were blended by inverse variance")
+        reason = solver.stats.stopped_by
+        blended = solver.estimate()
+        if reason in ("accuracy", "noise_floor", "tolerance"):
+            solver.stats.stopped_by = "accuracy" if blended.rms_refl <= goal else "noise_floor"
+        if solver.snapshots:  # the last snapshot's estimate is the blend's (its B stays the last pass's)
+            last = solver.snapshots[-1]
+            last.error_rms, last.error_refl = finite(blended.rms), finite(blended.rms_refl)
+    return solver
+
+
+def describe(config: SolverConfig) -> str:
+    """One line on how the run chose its density and stop rule (for the report's choices)."""
+    if by_accuracy(config):
+        return (f"accuracy target {config.accuracy:g} of the reflected light: {config.rays_per_power:.3g} rays "
+                f"per emitted power, stop when the error estimate meets it")
+    return f"stop at residual {config.tol:g} with {config.rays_per_power:.3g} rays per emitted power (expert settings)"
+
+
+def noise_floor_note(estimate, accuracy: float) -> str:
+    """The report's line when a run ended on its noise floor, above the target."""
+    noise = estimate.noise_refl if estimate is not None else float("nan")
+    return (f"stopped on the noise floor: all light shot but the estimated noise {noise:.4f} of the reflected "
+            f"light is above the target {accuracy:g}; more rays per emitted power (--rays-per-power) or "
+            f"more passes would lower it")

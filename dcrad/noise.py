@@ -1,0 +1,225 @@
+"""The error estimate of a run: Monte Carlo noise from two independent half-solutions, plus bias.
+
+Most of the error of a shooting solution is noise, not the unshot residual.  We
+measure it from the run itself.  Every patch shot sends its rays in two halves
+with their own randomly shifted lattices (``shoot.ray_lattice(halves=True)``),
+and each half is read as its own complete solution: half A shoots
+U_A = U + V/2 with its M_A rays, half B shoots U_B = U - V/2 with its M_B, where
+U is the patch's unshot power and V the difference of the two half-solutions'
+unshot power.  The solver's B is their mean (B_A + B_B) / 2: a ray of half A
+carries (U + V/2) / (2 M_A), one of half B (U - V/2) / (2 M_B), which sums to U,
+so the ledger is exactly the one of plain shooting.  ``NoiseTally`` keeps the
+difference D = B_A - B_B (and V, its unshot part) for every patch from one more
+bincount per batch (``Tally.received_a``), on the rows the batch touched only.
+
+The two half-solutions are independent (their rays are), so Var(B) = Var(D) / 4
+and ``noise = sqrt(sum_i A_i |D_i|^2 / sum_i A_i) / 2`` estimates the RMS noise
+of B, the noise that propagated through later bounces included (D is shot on
+with the light, through V).  What it cannot see: light whose randomness is not
+split (twin buffers of a divided run are shot with V = 0; their rays are split
+at random, so the sampling noise of twin rays is counted but the noise the
+power in the bins already carries is not shot on as a difference).
+
+Bias: the light still unshot (and in twin buffers) will raise B.  Spread as an
+ambient irradiance g = q U / ((1 - lambda) A) (solve.py), it adds rho_i g to
+patch i, so its RMS is g * sqrt(sum A rho^2 / A).  The estimate is
+sqrt(noise^2 + bias^2), reported over RMS(B) and over RMS(B - E) (``Estimate``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Estimate", "NoiseTally", "NoiseSums", "combine", "half_mask", "split_power", "METHOD",
+           "bias_ambient", "finite"]
+
+METHOD = ("two independent half-solutions (noise, includes propagated noise) + unshot light spread "
+          "as ambient irradiance (bias)")
+
+
+def half_mask(counts: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+    """(m,) bool: True for the rays of half A (each shooter's first ceil(c/2) rays).
+
+    A shooter with one ray cannot be split: its ray joins half A or B at random
+    (with ``rng``; else A), which keeps the difference D unbiased.
+    """
+    counts = np.asarray(counts, np.int64)
+    start = np.cumsum(counts) - counts
+    index = np.arange(int(counts.sum())) - np.repeat(start, counts)
+    half = index < np.repeat((counts + 1) // 2, counts)
+    single = counts == 1
+    if rng is not None and single.any():
+        half[start[single]] = rng.random(int(single.sum())) < 0.5
+    return half
+
+
+def split_power(power: np.ndarray, counts: np.ndarray, diff: np.ndarray | None) -> np.ndarray:
+    """(m,3) W per ray: half A carries (P + W/2) / (2 M_A), half B (P - W/2) / (2 M_B).
+
+    power (k,3) W each shooter shoots, counts (k,) rays, diff (k,3) W the
+    half-solutions' difference W = U_A - U_B of that power (None: 0).  A shooter
+    with one ray is not split: the ray carries P.
+    """
+    counts = np.asarray(counts, np.int64)
+    a = (counts + 1) // 2
+    b = counts - a
+    w = np.zeros_like(power) if diff is None else 0.5 * diff
+    w = np.where((b > 0)[:, None], w, 0.0)
+    pa = (power + w) / (np.where(b > 0, 2.0, 1.0) * a)[:, None]
+    pb = (power - w) / (2.0 * np.maximum(b, 1)[:, None])
+    both = np.stack([pa, pb], axis=1).reshape(-1, power.shape[1])
+    return np.repeat(both, np.stack([a, b], axis=1).ravel(), axis=0)
+
+
+@dataclass
+class NoiseSums:
+    """What a (sub)scene contributes to a job's estimate: area-weighted sums (channel means).
+
+    d2: sum A |D|^2 (W^2/m^2 m^2 = W^2/m^2 * m^2); b2: sum A |B|^2; r2: sum A |B - E|^2;
+    rho2: (3,) sum A rho^2 per channel; area: sum A (m^2).
+    """
+
+    d2: float = 0.0
+    b2: float = 0.0
+    r2: float = 0.0
+    rho2: np.ndarray | None = None
+    area: float = 0.0
+
+    def as_list(self) -> list[float]:
+        rho2 = np.zeros(3) if self.rho2 is None else self.rho2
+        return [self.d2, self.b2, self.r2, float(rho2[0]), float(rho2[1]), float(rho2[2]), self.area]
+
+    @staticmethod
+    def from_list(values) -> "NoiseSums":
+        v = [float(x) for x in values] + [0.0] * (7 - len(values))
+        return NoiseSums(v[0], v[1], v[2], np.array(v[3:6]), v[6])
+
+    def __add__(self, other: "NoiseSums") -> "NoiseSums":
+        r1 = np.zeros(3) if self.rho2 is None else self.rho2
+        r2 = np.zeros(3) if other.rho2 is None else other.rho2
+        return NoiseSums(self.d2 + other.d2, self.b2 + other.b2, self.r2 + other.r2, r1 + r2,
+                         self.area + other.area)
+
+
+@dataclass
+class Estimate:
+    """The estimated RMS error of B against the converged solution of the same discrete problem."""
+
+    rms: float  #: W/m^2
+    rms_norm: float  #: over RMS(B), the seed's normalisation
+    rms_refl: float  #: over RMS(B - E), the reflected light (the accuracy target's)
+    noise_refl: float  #: the noise part, over RMS(B - E)
+    bias_refl: float  #: the unshot part, over RMS(B - E)
+    method: str = METHOD
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def bias_ambient(tallies: np.ndarray, unshot: np.ndarray, area: float, mean_rho: np.ndarray) -> np.ndarray:
+    """(3,) W/m^2: the irradiance the unshot power (3,) W will still bring, spread evenly.
+
+    g = q U / ((1 - lambda) A) with q the share of shot power that lands and lambda
+    the return ratio, both from the run's return tallies (solve.stiffness); before
+    anything was shot, q = 1 and lambda = the mean rho (a closed scene).
+    """
+    shot, lost, landed, kept = np.asarray(tallies, np.float64)
+    if shot.sum() > 0 and landed.sum() > 0:
+        q = np.clip(1.0 - lost / np.maximum(shot, 1e-300), 0.0, 1.0)
+        lam = q * kept / np.maximum(landed, 1e-300)
+    else:
+        q, lam = np.ones(3), np.asarray(mean_rho, np.float64)
+    lam = np.clip(lam, 0.0, 1.0 - 1e-6)
+    return q * np.abs(unshot) / ((1.0 - lam) * max(area, 1e-300))
+
+
+def combine(sums: NoiseSums, ambient: np.ndarray) -> Estimate:
+    """The estimate from a job's summed ``NoiseSums`` and its bias irradiance ``ambient`` (3,)."""
+    area = max(sums.area, 1e-300)
+    rho2 = np.zeros(3) if sums.rho2 is None else sums.rho2
+    noise_ms = max(sums.d2, 0.0) / area / 4.0
+    bias_ms = float(np.mean(np.asarray(ambient) ** 2 * rho2)) / area
+    rms = math.sqrt(noise_ms + bias_ms)
+    rms_b = math.sqrt(max(sums.b2, 0.0) / area)
+    rms_r = math.sqrt(max(sums.r2, 0.0) / area)
+
+    def rel(x: float, ref: float) -> float:
+        return x / ref if ref > 0 else (0.0 if x == 0 else math.inf)
+
+    return Estimate(rms, rel(rms, rms_b), rel(rms, rms_r), rel(math.sqrt(noise_ms), rms_r),
+                    rel(math.sqrt(bias_ms), rms_r))
+
+
+def finite(x: float) -> float | None:
+    """x, or None when it is not finite (JSON has no inf)."""
+    return float(x) if math.isfinite(x) else None
+
+
+class NoiseTally:
+    """Per-patch half-solution differences and the area-weighted sums of one (sub)scene.
+
+    ``diff`` (n,3) W/m^2 is D = B_A - B_B; ``unshot`` (n,3) W/m^2 is its unshot part V.
+    ``commit`` is called with each batch's tally before ``deposit`` and touches the
+    rows the batch hit only; the sums are exact again after ``resync`` (called at
+    snapshots, which already cost O(patches)).
+    """
+
+    def __init__(self, patches) -> None:
+        n = len(patches)
+        self.diff = np.zeros((n, 3))
+        self.unshot = np.zeros((n, 3))
+        self._sums = NoiseSums(rho2=(patches.rho ** 2 * patches.area[:, None]).sum(axis=0),
+                               area=float(patches.total_area) if n else 0.0)
+        self.resync(patches)
+
+    # -- the per-batch hooks (Solver.step / Solver.commit) --------------------------
+    def shot_diff(self, shooters: np.ndarray, area: np.ndarray) -> np.ndarray:
+        """(k,3) W: the half-solutions' difference of the unshot power of ``shooters``."""
+        return self.unshot[shooters] * area[shooters, None]
+
+    def shot(self, shooters: np.ndarray) -> None:
+        """Shooters gave up their unshot power, its half-difference with it."""
+        self.unshot[shooters] = 0.0
+
+    def commit(self, patches, hit: np.ndarray, received: np.ndarray, received_a: np.ndarray | None) -> None:
+        """Book one batch before ``deposit``: D and V of the rows hit, and the sums; O(rows hit).
+
+        hit (k,) distinct patch indices; received, received_a (k,3) W: what arrived
+        there, and what arrived by rays of half A (``Tally.hit/received/received_a``).
+        """
+        if len(hit) == 0:
+            return
+        area = patches.area[hit]
+        rho = patches.rho[hit]
+        old_b = patches.radiosity[hit]
+        new_b = old_b + rho * received / area[:, None]
+        e = patches.emission[hit]
+        s = self._sums
+        s.b2 += float(np.dot(((new_b * new_b) - (old_b * old_b)).mean(axis=1), area))
+        new_r, old_r = new_b - e, old_b - e
+        s.r2 += float(np.dot(((new_r * new_r) - (old_r * old_r)).mean(axis=1), area))
+        if received_a is None:
+            return
+        gain = rho * 2.0 * (2.0 * received_a - received) / area[:, None]
+        old_d = self.diff[hit]
+        new_d = old_d + gain
+        self.diff[hit] = new_d
+        self.unshot[hit] += gain
+        s.d2 += float(np.dot(((new_d * new_d) - (old_d * old_d)).mean(axis=1), area))
+
+    def resync(self, patches) -> None:
+        """Recompute the sums from the arrays (drops the round-off of the increments)."""
+        a = patches.area
+        b = patches.radiosity
+        r = b - patches.emission
+        s = self._sums
+        s.d2 = float(np.dot((self.diff * self.diff).mean(axis=1), a)) if len(a) else 0.0
+        s.b2 = float(np.dot((b * b).mean(axis=1), a)) if len(a) else 0.0
+        s.r2 = float(np.dot((r * r).mean(axis=1), a)) if len(a) else 0.0
+
+    def sums(self) -> NoiseSums:
+        s = self._sums
+        return NoiseSums(s.d2, s.b2, s.r2, s.rho2.copy(), s.area)

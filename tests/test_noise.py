@@ -1,0 +1,123 @@
+"""The error estimate (noise.py) against independent truths, the accuracy knob, the direct gather.
+
+Truth: a closed cube whose every surface emits E and reflects rho has the exact
+discrete solution B_i = E / (1 - rho) on every patch (each row of form factors
+sums to one), so the RMS error of a run is measured exactly, without a reference run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dcrad.accuracy import by_accuracy, rays_for, resolve, solve_to_accuracy
+from dcrad.config import SolverConfig
+from dcrad.divide import DivideConfig, solve_divided
+from dcrad.energy import rms_error
+from dcrad.noise import NoiseSums, combine, half_mask, split_power
+from dcrad.patches import Patches
+from dcrad.pipeline import prepare
+from dcrad.rays import Tracer
+from dcrad.solve import Solver
+from scenes.furnace import furnace_box
+
+RHO = 0.5
+
+
+@pytest.fixture(scope="module")
+def uniform_furnace(tmp_path_factory):
+    """A 1 m cube, 0.2 m patches, every surface emitting 1 W/m^2 with rho 0.5: B* = 2 everywhere."""
+    path = furnace_box(tmp_path_factory.mktemp("furnace"), rho=RHO, light_fraction=0.25)
+    _, p, _ = prepare(path, patch_size=0.2)
+    patches = Patches(p.vertices, p.faces, p.rho, np.ones((len(p), 3)), p.source, p.obj, p.names)
+    return patches, Tracer(patches.triangles)
+
+
+def measured(patches) -> tuple[float, float]:
+    """(RMS error W/m^2, over RMS(B* - E)) against the exact B* = E / (1 - rho)."""
+    exact = patches.emission / (1.0 - RHO)
+    err = rms_error(patches.radiosity, exact, patches.area)
+    return err, err / (RHO / (1.0 - RHO))
+
+
+@pytest.mark.parametrize("rays_per_power,direct", [(2e4, False), (2e5, False), (2e5, True)])
+def test_estimate_matches_the_exact_error(uniform_furnace, rays_per_power, direct):
+    """Converged runs (bias ~ 0): the noise estimate is within a factor 1.5 of the measured error."""
+    patches, tracer = uniform_furnace
+    patches.reset()
+    s = Solver(patches, SolverConfig(seed=7, tol=1e-4, rays_per_power=rays_per_power, direct=direct), tracer=tracer)
+    s.run()
+    err, _ = measured(patches)
+    est = s.estimate()
+    assert est.bias_refl < 0.1 * est.noise_refl
+    assert 1 / 1.5 < est.rms / err < 1.5, (est, err)
+    assert s.ledger.closure() < 1e-9
+
+
+@pytest.mark.parametrize("accuracy", [0.1, 0.05])
+def test_accuracy_target_stops_the_run_and_is_met(uniform_furnace, accuracy):
+    """--accuracy: the run chooses its density, stops by its estimate, and the measured error agrees."""
+    patches, tracer = uniform_furnace
+    patches.reset()
+    s = solve_to_accuracy(patches, SolverConfig(seed=11, accuracy=accuracy), tracer)
+    assert s.stats.stopped_by == "accuracy"
+    est = s.estimate()
+    assert est.rms_refl <= accuracy
+    err, err_refl = measured(patches)
+    assert 1 / 1.5 < est.rms / err < 1.5, (est, err)
+    assert err_refl < 1.5 * accuracy
+    assert s.ledger.closure() < 1e-9
+
+
+def test_divided_estimate_combines_subscenes(uniform_furnace):
+    """Exact forwarding (no binning bias): the job's estimate from the subscenes' sums
+    is within a factor 1.5 of the exact error of the assembled B."""
+    patches, _ = uniform_furnace
+    patches.reset()
+    run, subs, *_ = solve_divided(patches, SolverConfig(seed=5, tol=1e-3, rays_per_power=5e4),
+                                  DivideConfig(subscenes=2, mode="exact"))
+    est = run.estimate
+    assert est is not None and len(subs) == 2
+    err, _ = measured(patches)
+    assert 1 / 1.5 < est.rms / err < 1.5, (est, err)
+    assert run.snapshots[-1].error_refl == pytest.approx(est.rms_refl)
+
+
+def test_split_rays_carry_the_shot_power_exactly():
+    """Half A carries (P + W/2)/2, half B (P - W/2)/2 of every shooter; a lone ray carries P."""
+    rng = np.random.default_rng(0)
+    counts = np.array([1, 2, 5, 8])
+    power = rng.random((4, 3))
+    diff = rng.normal(size=(4, 3)) * 0.1
+    rays = split_power(power, counts, diff)
+    half = half_mask(counts)
+    owner = np.repeat(np.arange(4), counts)
+    for k in range(4):
+        mine = owner == k
+        assert rays[mine].sum(axis=0) == pytest.approx(power[k])
+        if counts[k] > 1:
+            assert rays[mine & half].sum(axis=0) == pytest.approx((power[k] + diff[k] / 2) / 2)
+    assert half.sum() == 1 + 1 + 3 + 4
+
+
+def test_combine_normalisations():
+    """rms over RMS(B) and over RMS(B - E) from area-weighted sums; noise is |D|/2."""
+    sums = NoiseSums(d2=4.0 * 0.01, b2=4.0, r2=1.0, rho2=np.zeros(3), area=1.0)
+    est = combine(sums, np.zeros(3))
+    assert est.rms == pytest.approx(0.1)
+    assert est.rms_norm == pytest.approx(0.05)
+    assert est.rms_refl == pytest.approx(0.1)
+    assert est.bias_refl == 0.0
+    assert math.isinf(combine(NoiseSums(d2=1.0, b2=1.0, r2=0.0, rho2=np.zeros(3), area=1.0), np.zeros(3)).rms_refl)
+
+
+def test_resolve_is_idempotent_and_tol_is_expert():
+    c = SolverConfig()
+    assert by_accuracy(c) and c.accuracy == 0.02
+    r = resolve(c, 1000)
+    assert r.rays_per_power == pytest.approx(rays_for(1000, 0.02)) and resolve(r, 1000) == r
+    legacy = resolve(SolverConfig(tol=0.01), 1000)
+    assert not by_accuracy(legacy) and legacy.rays_per_power == 2e5 and legacy.accuracy == 0.0
+    assert resolve(legacy, 1000) == legacy
