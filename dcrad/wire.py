@@ -7,6 +7,7 @@ as repeated floats, never pickled.  Only plain numeric dtypes are accepted.
 
 from __future__ import annotations
 
+import math
 from pathlib import PurePosixPath
 from typing import Iterable, Iterator
 
@@ -18,7 +19,7 @@ from .v1 import dcrad_pb2 as pb
 
 __all__ = [
     "CHUNK_BYTES", "ALLOWED_DTYPES", "array_chunks", "arrays_to_chunks", "ArrayAssembler", "assemble_arrays",
-    "ledger_to_pb", "ledger_from_pb", "file_chunks", "FileAssembler", "safe_relpath",
+    "ledger_to_pb", "ledger_from_pb", "estimate_to_pb", "file_chunks", "FileAssembler", "safe_relpath",
 ]
 
 #: bytes of payload per chunk: far below gRPC's 4 MB default
@@ -111,6 +112,15 @@ def ledger_to_pb(led: Ledger) -> pb.Ledger:
     for name in ACCOUNTS + MAGNITUDES:
         getattr(msg, name).extend(float(x) for x in getattr(led, name))
     return msg
+
+
+def estimate_to_pb(est) -> pb.ErrorEstimate:
+    """``noise.Estimate`` -> ``ErrorEstimate`` (an infinite ratio, before any light landed, as 0)."""
+    def f(x: float) -> float:
+        return float(x) if math.isfinite(x) else 0.0
+
+    return pb.ErrorEstimate(rms=f(est.rms), rms_norm=f(est.rms_norm), rms_refl=f(est.rms_refl),
+                            noise_refl=f(est.noise_refl), bias_refl=f(est.bias_refl), method=est.method)
 
 
 def ledger_from_pb(msg: pb.Ledger) -> Ledger:

@@ -16,7 +16,12 @@ function facts(j) {
   stateBadge($("state"), j.state);
   $("elapsed").textContent = fmtTime(j.elapsed_s);
   $("residual").textContent = `${fmtSci(j.residual)} (${fmtSci(j.settings.tol)})`;
-  $("rms").textContent = p ? fmtSci(p.rms_estimate, 3) + " W/m²" : "–";
+  $("rms").textContent = !p ? "–" : (p.error && p.error.rms_refl > 0
+    ? `${(100 * p.error.rms_refl).toFixed(2)}% of reflected light` +
+      (p.accuracy > 0 ? ` (target ${100 * p.accuracy}%)` : "") +
+      ` · noise ${(100 * p.error.noise_refl).toFixed(2)}%, bias ${(100 * p.error.bias_refl).toFixed(2)}%` +
+      ` · ${fmtSci(p.rms_estimate, 3)} W/m²`
+    : fmtSci(p.rms_estimate, 3) + " W/m²");
   $("barrier").textContent = p ? p.barrier : 0;
   $("rays").textContent = p ? fmtInt(p.rays) : "–";
   $("shots").textContent = p ? fmtInt(p.shots) : "–";

@@ -1,0 +1,96 @@
+"""Error against rays and seconds at several accuracy targets, estimate beside measured.
+
+For each scene: a reference solution from a long plain-shooting run with another
+seed (its own estimated noise is subtracted in quadrature from the measured
+error, and the raw figure is printed too), then one run per accuracy target with
+and without the direct-light gather (``--no-direct``: the emitters are shot
+with rays).  Prints a markdown table: rays, seconds, how the run stopped, the
+estimate (over RMS of B - E), the measured error over RMS(B - E) and over RMS(B),
+and estimate / measured.
+
+    .venv/bin/python bench/bench_accuracy.py --scenes cornell,office --accuracies 0.1,0.05,0.03,0.02
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from dcrad.accuracy import solve_to_accuracy  # noqa: E402
+from dcrad.config import SolverConfig  # noqa: E402
+from dcrad.energy import rms_error  # noqa: E402
+from dcrad.pipeline import prepare, resolve_scene  # noqa: E402
+from dcrad.rays import Tracer  # noqa: E402
+from dcrad.solve import Solver  # noqa: E402
+
+
+def rms(x: np.ndarray, area: np.ndarray) -> float:
+    return math.sqrt(float(np.dot((x * x).mean(axis=1), area) / area.sum()))
+
+
+def reference(patches, tracer, rays_per_power: float, cache: Path | None):
+    """B* from a long plain-shooting run (seed 999), and its own estimated RMS noise (W/m^2)."""
+    if cache is not None and cache.exists():
+        z = np.load(cache)
+        return z["B"], float(z["noise"])
+    patches.reset()
+    s = Solver(patches, SolverConfig(seed=999, tol=1e-4, rays_per_power=rays_per_power, direct=False), tracer=tracer)
+    t = time.perf_counter()
+    s.run()
+    est = s.estimate()
+    print(f"reference: {s.stats.rays / 1e6:.1f} M rays, {time.perf_counter() - t:.0f} s, estimated noise "
+          f"{est.noise_refl:.4f} of the reflected light", flush=True)
+    if cache is not None:
+        np.savez(cache, B=patches.radiosity, noise=est.rms)
+    return patches.radiosity.copy(), est.rms
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="cornell,office")
+    ap.add_argument("--accuracies", default="0.1,0.05,0.03,0.02")
+    ap.add_argument("--ref-rays-per-power", type=float, default=2e7)
+    ap.add_argument("--cache", default="", help="folder to keep reference solutions in between runs")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--gather", default="on,off", help="direct-light gather: on, off or on,off")
+    args = ap.parse_args()
+    accuracies = [float(a) for a in args.accuracies.split(",")]
+    gathers = [g.strip() == "on" for g in args.gather.split(",")]
+    print("| scene | patches | gather | target | rays (M) | s | stopped by | estimate refl | measured refl | "
+          "measured norm | est/meas |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.scenes.split(","):
+            path = resolve_scene(name, Path(tmp) / name)
+            _, patches, _ = prepare(path)
+            tracer = Tracer(patches.triangles)
+            cache = Path(args.cache) / f"ref_{name}_{args.ref_rays_per_power:g}.npz" if args.cache else None
+            ref, ref_noise = reference(patches, tracer, args.ref_rays_per_power, cache)
+            area = patches.area
+            rms_b, rms_r = rms(ref, area), rms(ref - patches.emission, area)
+            for gather in gathers:
+                for acc in accuracies:
+                    patches.reset()
+                    cfg = SolverConfig(seed=args.seed, accuracy=acc, direct=gather)
+                    t = time.perf_counter()
+                    s = solve_to_accuracy(patches, cfg, tracer)
+                    dt = time.perf_counter() - t
+                    est = s.estimate()
+                    raw = rms_error(patches.radiosity, ref, area)
+                    meas = math.sqrt(max(raw * raw - ref_noise * ref_noise, 1e-300))
+                    print(f"| {name} | {len(patches)} | {'on' if gather else 'off'} | {acc:g} | "
+                          f"{s.stats.rays / 1e6:.2f} | {dt:.1f} | {s.stats.stopped_by} | {est.rms_refl:.4f} | "
+                          f"{meas / rms_r:.4f} (raw {raw / rms_r:.4f}) | {meas / rms_b:.4f} | "
+                          f"{est.rms / meas:.2f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
