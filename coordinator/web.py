@@ -64,7 +64,13 @@ def ledger_dict(led: pb.Ledger) -> dict:
 
 
 def progress_dict(p: pb.Progress) -> dict:
+    error = None
+    if p.HasField("error"):
+        e = p.error
+        error = {"rms": e.rms, "rms_norm": e.rms_norm, "rms_refl": e.rms_refl, "noise_refl": e.noise_refl,
+                 "bias_refl": e.bias_refl, "method": e.method}
     return {"barrier": p.barrier, "shots": p.shots, "rays": p.rays, "rms_estimate": p.rms_estimate,
+            "error": error, "accuracy": p.accuracy,
             "bytes_relayed": p.bytes_relayed, "ledger": ledger_dict(p.ledger),
             "subscenes": [{"cell": s.cell, "worker": s.worker, "shots": s.shots, "rays": s.rays,
                            "residual": s.residual, "twin_bytes": s.twin_bytes, "reassigned": s.reassigned}
