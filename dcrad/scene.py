@@ -554,8 +554,11 @@ def detect_up(vertices: np.ndarray, faces: np.ndarray, emission: np.ndarray | No
     """The up axis of a model (a key of UP_AXES) and how it was found.
 
     Lamps hang on ceilings and face down: when at least half the emitted power leaves
-    surfaces facing along one axis (|n| > 0.9), that is the axis, and the sign is the
-    one they face away from when at least half faces one way.  Otherwise the axis is
+    surfaces facing along one axis (|n| > 0.9), that is the axis.  Its sign: the way the
+    lamps sit above the rest of the geometry (power-weighted lamp height against the
+    area-weighted height of everything else, when they differ by 5% of the extent:
+    this holds whatever the winding); else the way they face away from, when at least
+    half faces one way; else as below.  Otherwise the axis is
     the one with the most area facing along it both ways (floors and ceilings: the
     lesser way at least 10% of the other), Y when its area is within 10% of the best
     (dcrad's own convention) or when no axis qualifies, and the sign, which normals
@@ -574,6 +577,13 @@ def detect_up(vertices: np.ndarray, faces: np.ndarray, emission: np.ndarray | No
             name = "xyz"[axis]
             down, up = float(lamp[n[:, axis] < -0.9].sum()), float(lamp[n[:, axis] > 0.9].sum())
             why = f"emitters face along {name} ({100 * along[axis] / lamp.sum():.0f}% of the emitted power)"
+            rest = lamp <= 0
+            if rest.any() and area[rest].sum() > 0:
+                high = float((c[:, axis] * lamp).sum() / lamp.sum())
+                low = float((c[rest, axis] * area[rest]).sum() / area[rest].sum())
+                if abs(high - low) > 0.05 * max(float(np.ptp(c[:, axis])), 1e-300):
+                    sign = "" if high > low else "-"
+                    return sign + name, why + f", above the rest along {sign or '+'}{name}: lamps hang high"
             if max(down, up) >= 0.5 * float(lamp.sum()):
                 sign = "" if down > up else "-"
                 return sign + name, why + f", facing {'-' if down > up else '+'}{name}: lamps face down"

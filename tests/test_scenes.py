@@ -536,3 +536,24 @@ def test_auto_camera_stands_in_the_lit_room(tmp_path):
     lit_side = np.sign(lamps[0, 0] - mid)
     cam = auto_camera(p, 64, 48)
     assert np.sign(cam.eye[0] - mid) == lit_side and np.sign(cam.target[0] - mid) == lit_side
+
+
+def test_detect_up_cues():
+    """Lamps hang high whatever their winding; floors facing ceilings give the axis; a lone
+    plane gives no evidence (Y)."""
+    from dcrad.scene import UP_AXES, detect_up
+
+    quad = lambda y, up: [[0, y, 0], [0, y, 1], [1, y, 1]] if up else [[0, y, 0], [1, y, 1], [0, y, 1]]  # noqa: E731
+    for lamp_up in (False, True):  # a lamp at the top, facing down or (wrongly) up
+        tri = np.array([quad(0.0, True), quad(1.0, False), quad(0.9, lamp_up)], np.float64)
+        em = np.array([[0, 0, 0], [0, 0, 0], [5, 5, 5]], np.float64)
+        for name in ("y", "z", "-x"):
+            rot = np.array(UP_AXES[name], float).T  # Y-up -> a frame whose up is ``name``
+            v = tri.reshape(-1, 3) @ rot.T
+            got, why = detect_up(v, np.arange(9).reshape(3, 3), em)
+            assert got == name, (lamp_up, name, got, why)
+    plane = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+    assert detect_up(plane, np.array([[0, 1, 2]]))[0] == "y"
+    room = np.array([quad(0.0, True), quad(1.0, False), quad(0.2, True)], np.float64)  # a table, low
+    v = room.reshape(-1, 3) @ np.array(UP_AXES["z"], float)
+    assert detect_up(v, np.arange(9).reshape(3, 3))[0] == "z"
