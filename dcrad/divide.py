@@ -739,7 +739,6 @@ def checkpoint_arrays(sub: Subscene) -> dict:
                            sub.twin_blocks], np.int64),
         "trace_seconds": np.array([sub.stats.trace_seconds]),
         "back_by_obj": sub.back_by_obj,
-        "noise_diff": sub.noise.diff, "noise_unshot": sub.noise.unshot,  # the half-solutions (noise.py)
         "rng_state": np.frombuffer(rng, np.uint8),
         # the error estimate's half-solution difference: it also splits each shot's power
         "noise_diff": sub.noise.diff, "noise_unshot": sub.noise.unshot,
@@ -764,10 +763,6 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
         sub.stats.shots, sub.stats.rays, sub.stats.batches, sub.twins_delivered, sub.twin_blocks = stats[:5]
         sub.stats.trace_seconds = float(arrays["trace_seconds"][0])
         sub.back_by_obj = np.array(arrays["back_by_obj"], np.float64)
-        if "noise_diff" in arrays:
-            sub.noise.diff = np.array(arrays["noise_diff"], np.float64)
-            sub.noise.unshot = np.array(arrays["noise_unshot"], np.float64)
-            sub.noise.resync(sub.patches)
         sub.rng.bit_generator.state = json.loads(bytes(arrays["rng_state"]).decode())
         if "noise_diff" in arrays:
             sub.noise.diff = np.array(arrays["noise_diff"], np.float64)
