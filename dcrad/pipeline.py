@@ -312,7 +312,8 @@ def solve_to(
     t0 = time.perf_counter()
     if divide is not None and divide.subscenes > 1:
         progress = (lambda run: on_progress(_DividedView(run))) if on_progress else None
-        subs, boundaries, parents, part = build_subscenes(patches, config, divide, planes=planes)
+        subs, boundaries, parents, part = build_subscenes(patches, config, divide,
+                                                          planes=scene.planes_to_internal(planes))
         t_setup = time.perf_counter() - t0
         run = run_subscenes(patches, subs, boundaries, parents, config, divide,
                             on_barrier=progress, should_stop=should_stop)

@@ -135,6 +135,17 @@ class Scene:
         """Internal (Y-up) points or vectors (..., 3) -> the input file's frame."""
         return np.asarray(points, np.float64) @ self.rotation
 
+    def planes_to_internal(self, planes):
+        """Axis-aligned planes [(axis, offset)] given in the input's frame (as a user writes
+        ``--planes`` for the file) -> the internal frame's [(axis, offset)]."""
+        if planes is None:
+            return None
+        out = []
+        for axis, offset in planes:
+            row = int(np.flatnonzero(self.rotation[:, axis])[0])  # internal axis fed by this input axis
+            out.append((row, float(self.rotation[row, axis]) * float(offset)))
+        return out
+
 
 
 # -- helpers -------------------------------------------------------------------------------

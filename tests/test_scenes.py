@@ -557,3 +557,20 @@ def test_detect_up_cues():
     room = np.array([quad(0.0, True), quad(1.0, False), quad(0.2, True)], np.float64)  # a table, low
     v = room.reshape(-1, 3) @ np.array(UP_AXES["z"], float)
     assert detect_up(v, np.arange(9).reshape(3, 3))[0] == "z"
+
+
+def test_planes_are_given_in_the_files_frame(tmp_path):
+    """--planes for a Z-up file name its own axes: z=4.06 in the Y-up office is y=-4.06 in the
+    Z-up copy, and the two divided solves agree bit for bit."""
+    from dcrad.config import DivideConfig, SolverConfig
+    from dcrad.pipeline import solve_to
+    from scenes.variants import variant
+
+    src = scenes.write_builtin("office", tmp_path / "y", rows=2, cols=1, seed=1)
+    z = variant(src, tmp_path / "z", up="z")
+    cfg, div = SolverConfig(tol=0.05, seed=3), DivideConfig(subscenes=2, iterations=4)
+    ry = solve_to(src, tmp_path / "oy", cfg, divide=div, planes=[(2, 4.06)])
+    rz = solve_to(z, tmp_path / "oz", cfg, divide=div, planes=[(1, -4.06)])
+    assert ry["divided"]["partition"]["planes"] == rz["divided"]["partition"]["planes"]
+    np.testing.assert_array_equal(np.load(tmp_path / "oy" / "radiosity.npz")["B"],
+                                  np.load(tmp_path / "oz" / "radiosity.npz")["B"])
