@@ -23,8 +23,8 @@ from types import SimpleNamespace
 
 from .accuracy import resolve
 from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
-from .progress import error_text
 from .errors import DcradError
+from .progress import error_text
 from .settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
 
 __all__ = ["main"]
@@ -35,8 +35,9 @@ log = logging.getLogger("dcrad")
 def _solver_args(p: argparse.ArgumentParser) -> None:
     add_flags(p, SolverConfig)
     add_scene_flags(p)
-    p.add_argument("--workers", type=int, default=2,
-                   help="local worker processes with an embedded coordinator (0: solve in this process)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="local worker processes with an embedded coordinator (0: solve in this process; "
+                        "default: 2 for scenes of 150k patches or more on 2+ CPUs, else 0)")
     add_divide_flags(p, "split into k subscenes (default: one per worker; 1: no partition, no twins)")
     p.add_argument("--planes", default="", help="explicit partition planes, e.g. x=4.06,z=4.06 (each splits "
                                                 "every cell it crosses; overrides --subscenes)")
@@ -94,20 +95,24 @@ def _restore(previous: dict) -> None:
 
 
 def cmd_solve(args) -> int:
-    from .pipeline import resolve_scene, solve_to
-    from .progress import ProgressBar
-
     from coordinator.embedded import check_workers
 
     from .errors import ConfigError
+    from .pipeline import resolve_scene, solve_to
+    from .progress import ProgressBar
 
+    choice = None
+    if args.workers is None:  # the default: divide only where it pays
+        args.workers, choice = _auto_workers(args)
     check_workers(args.workers)
     if args.subscenes < 0:
         raise ConfigError(f"--subscenes must be >= 1 (or 0: one per worker), not {args.subscenes}")
     config = _config(args)
     out = Path(args.out)
     if args.workers > 0:
-        return _solve_embedded(args, config, out)
+        code = _solve_embedded(args, config, out)
+        _note_choice(out, choice)
+        return code
     rules = resolve(config)
     bar = ProgressBar(rules.tol, force=args.progress, accuracy=rules.accuracy)
     stop = _Interrupt()
@@ -131,8 +136,37 @@ def cmd_solve(args) -> int:
     final = SimpleNamespace(**report["error"]) if report.get("error") else None
     bar.update(report["residual"], report["stats"]["rays"], report["stats"]["wall_seconds"], 0.0, final=True,
                estimate=final)
+    _note_choice(out, choice)
     _summary(report, out)
     return 0
+
+
+def _auto_workers(args) -> tuple[int, str]:
+    """--workers by default: from the scene's patch count (estimated before meshing) and the CPUs."""
+    from .divide import auto_workers, estimate_patches
+    from .pipeline import default_patch_size, resolve_scene
+    from .scene import load_scene
+
+    if args.planes or args.subscenes > 1:
+        return 0, "solved in this process (--workers 0 by default with --planes or --subscenes)"
+    with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
+        scene = load_scene(resolve_scene(args.scene, Path(tmp)), scale=args.scale, up=args.up,
+                           two_sided=args.two_sided)
+    size = args.patch_size if args.patch_size and args.patch_size > 0 else default_patch_size(scene)
+    tri = scene.vertices[scene.faces[scene.valid]]
+    return auto_workers(estimate_patches(tri, size), os.cpu_count() or 1)
+
+
+def _note_choice(out: Path, choice: str | None) -> None:
+    """Add the default's choice of workers to report.json's ``choices``."""
+    import json
+
+    path = out / "report.json"
+    if choice is None or not path.exists():
+        return
+    report = json.loads(path.read_text())
+    report["choices"] = [choice] + list(report.get("choices", []))
+    path.write_text(json.dumps(report, indent=1))
 
 
 def _k_list(text: str) -> tuple[int, ...]:
@@ -209,7 +243,7 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
             if cluster.web_url:
                 print(f"dcrad: status page {cluster.web_url}/jobs/{job.job_id} (while this runs)", file=sys.stderr)
             bar = client.WatchBar(config.tol, force=args.progress)
-            cancelled = []
+            cancelled: list[bool] = []
             previous = _catch(stop)
 
             def on_progress(p):

@@ -46,7 +46,7 @@ from .solve import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
     "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor",
-    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "solve_divided", "subscene_arrays",
+    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers", "estimate_patches", "solve_divided", "subscene_arrays",
     "checkpoint_arrays", "build_subscene", "boundaries_to_array", "boundaries_from_array", "run_subscenes",
 ]
 
@@ -342,7 +342,10 @@ class Subscene(Solver):
         rays = 0
         goal = max(self.local_target, 0.25 * self.local_residual()) if self.local_target > 0 else 0.0
         cap = FORWARD_CAP * self.config.batch_rays
-        for _ in range(n):
+        deadline = time.perf_counter() + plan.time_left if plan is not None and plan.time_left > 0 else None
+        for i in range(n):
+            if deadline is not None and i > 0 and time.perf_counter() >= deadline:
+                break  # the job's time limit, inside the barrier
             if goal > 0 and self.local_residual() <= goal:
                 break
             if isinstance(self.sent, RayParcel) and len(self.sent) >= cap:
@@ -456,13 +459,16 @@ class BarrierPlan:
 
     stiffness : the job's Stiffness (ambient scale and ray factor)
     rest      : (3,) W, signed unshot + twin power held by the *other* subscenes
+    time_left : s until the job's time limit (0: none); doIterations stops after the
+                batch that passes it, so the limit holds inside a barrier, on any worker
     """
 
     stiffness: Stiffness
     rest: np.ndarray
+    time_left: float = 0.0
 
 
-def barrier_plan(states: list[SubsceneState], config: SolverConfig) -> dict:
+def barrier_plan(states: list[SubsceneState], config: SolverConfig, time_left: float = 0.0) -> dict:
     """{cell: BarrierPlan} for the next doIterations (empty: plain shooting everywhere).
 
     Stiffness is a property of the whole job (light crosses the boundaries), so
@@ -473,10 +479,10 @@ def barrier_plan(states: list[SubsceneState], config: SolverConfig) -> dict:
     tallies = sum((s.tallies for s in states), np.zeros((4, 3)))
     st = stiffness(tallies, area, config)
     if not st.active:
-        return {}
+        return {} if time_left <= 0 else {s.cell: BarrierPlan(st, np.zeros(3), time_left) for s in states}
     held = {s.cell: s.ledger.unshot + s.ledger.in_flight for s in states}
     total = sum(held.values(), np.zeros(3))
-    return {cell: BarrierPlan(st, total - u) for cell, u in held.items()}
+    return {cell: BarrierPlan(st, total - u, time_left) for cell, u in held.items()}
 
 
 def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], config: SolverConfig,
@@ -538,8 +544,9 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
         if reason:
             break
         # doIterations in every subscene (in parallel when the executor allows)
-        plan = barrier_plan(run.states, config)
-        if plan:
+        left = config.time_limit - (time.perf_counter() - t0) if config.time_limit else 0.0
+        plan = barrier_plan(run.states, config, max(left, 1e-9) if config.time_limit else 0.0)
+        if plan and next(iter(plan.values())).stiffness.active:
             run.stiff = next(iter(plan.values())).stiffness
         list(executor.map(lambda h, plan=plan: h.iterate(iterations, plan.get(h.cell)), handles))
         # transferEnergy at the barrier
@@ -575,6 +582,36 @@ def check_subscenes(k: int, n_patches: int) -> None:
         raise ConfigError(f"{k} subscenes for {n_patches} patches: at most {limit} (each subscene needs "
                           f"{MIN_PATCHES_PER_SUBSCENE} patches on average, and a job at most {MAX_SUBSCENES}); "
                           f"use fewer subscenes or a smaller --patch-size")
+
+
+#: patches below which `dcrad solve` runs in one process by default: two local workers pay
+#: for their start-up (processes, upload, partition, loading: a few seconds) only on bigger
+#: scenes (bench/RESULTS.md, issue 14)
+AUTO_DIVIDE_PATCHES = 150_000
+
+
+def estimate_patches(triangles: np.ndarray, patch_size: float) -> int:
+    """About how many patches meshing (n,3,3) triangles to ``patch_size`` gives: midpoint
+    subdivision quarters a triangle until its longest edge is at most the size; trimesh
+    splits only the long edges, about 2/3 of that on the office (27.8k of 41.8k at 3x3
+    rooms, 201k of 315k at 8x8)."""
+    if len(triangles) == 0 or not patch_size > 0:
+        return len(triangles)
+    e = np.linalg.norm(triangles - np.roll(triangles, 1, axis=1), axis=2).max(axis=1)
+    levels = np.ceil(np.log2(np.maximum(e / patch_size, 1.0)))
+    return int(np.sum(4.0 ** np.minimum(levels, 20)) * 2 / 3)
+
+
+def auto_workers(n_patches: int, cpus: int) -> tuple[int, str]:
+    """Local worker processes for `dcrad solve` without --workers, and the report's line on it."""
+    if cpus < 2:
+        return 0, "solved in this process (--workers 0 by default): one CPU, local workers would only compete"
+    if n_patches < AUTO_DIVIDE_PATCHES:
+        return 0, (f"solved in this process (--workers 0 by default): about {n_patches} patches, below the "
+                   f"{AUTO_DIVIDE_PATCHES} at which two local workers pay for their start-up "
+                   f"(--workers 2 divides anyway)")
+    return 2, (f"two local worker processes by default: about {n_patches} patches (at least "
+               f"{AUTO_DIVIDE_PATCHES}: dividing pays for the start-up)")
 
 
 @dataclass
