@@ -4,7 +4,7 @@ VENV  ?= .venv
 BIN   := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test bench clean proto
+.PHONY: install demo test test-fast lint bench clean proto
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -18,13 +18,35 @@ install: $(STAMP)
 demo: install
 	$(BIN)/dcrad solve office --out out/office
 
-## install, then run the whole test suite
+## install, then run the whole test suite (needs Docker and Chromium: see README)
 test: install
 	$(BIN)/python -m pytest -q
 
-## print benchmark figures (never run by CI)
+## the suite without the tests that need a Docker Engine or Chromium (markers docker, browser)
+test-fast: install
+	$(BIN)/python -m pytest -q -m "not docker and not browser"
+
+## ruff and mypy, as CI runs them before the tests (settings in pyproject.toml)
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/mypy
+
+## print benchmark figures with short settings (never run by CI); every bench/bench_*.py is listed here
+BENCH := \
+	"bench_solver.py" \
+	"bench_divide.py --sizes 2x3 --ks 1,2,4 --targets 0.2" \
+	"bench_service.py" \
+	"bench_binning.py --quick" \
+	"bench_stiff.py --rhos 0.9,0.99 --time-limit 20" \
+	"bench_scale.py --rooms 3,8 --max-rays 2000000 --no-outputs" \
+	"bench_scaling.py --rows 6 --cols 6 --ks 1,2,4,8" \
+	"bench_checkpoint.py --rows 4 --cols 4" \
+	"bench_accuracy.py --scenes cornell --accuracies 0.1,0.05" \
+	"bench_real_scenes.py 50000"
 bench: install
-	$(BIN)/python bench/bench_solver.py
+	@for f in bench/bench_*.py; do case ' $(BENCH) ' in *'"'$$(basename $$f)* ) ;; \
+	  *) echo "make bench: $$f is not in BENCH (Makefile)"; exit 1;; esac; done
+	@for b in $(BENCH); do echo "== bench/$$b"; $(BIN)/python bench/$$b || exit 1; done
 
 clean:
 	rm -rf out build dist *.egg-info test-artifacts

@@ -65,7 +65,7 @@ def main(argv=None) -> int:
         Solver(ref, SolverConfig(tol=1e-3, rays_per_power=2e7, seed=99, **ALL)).run()
         mean_b = float((ref.radiosity[:, 0] * ref.area).sum() / ref.area.sum())
 
-        def row(run, accel, p, wall, stopped, shots, rays, barriers, residual):
+        def row(run, accel, p, wall, stopped, shots, rays, barriers, residual, ref=ref, mean_b=mean_b, rho=rho):
             nrms = rms_error(p.radiosity, ref.radiosity, p.area) / mean_b
             print(f"{rho:6g} {run:>10} {accel:>16} {stopped:>10} {wall:7.2f} {shots:9d} {rays:12,d} {barriers:>8} "
                   f"{residual:9.2e} {identity(p, rho):9.2e} {nrms:7.4f}", flush=True)

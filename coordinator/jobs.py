@@ -424,9 +424,11 @@ class JobManager:
         spec = job.spec
         config = solver_config(spec.solver)
         t0 = time.perf_counter()
+        phases: dict[str, float] = {}
         scene, patches, size = prepare(job.root / "scene" / spec.scene, spec.solver.patch_size or None,
-                                       spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided)
-        timings = {"load_and_mesh_s": time.perf_counter() - t0}
+                                       spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
+                                       timings=phases)
+        timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
         live = self.pool.wait_for(1, self.worker_wait)
         if live == 0:
             raise NoWorkers(f"no worker registered within {self.worker_wait:.0f} s")
@@ -507,8 +509,8 @@ class JobManager:
             if resume is not None:
                 books.choices.append(f"resumed from barrier {resume.barrier} after a coordinator restart "
                                      f"(checkpoints on disk)")
-            settings = config.as_dict() | scene_settings(scene, size, spec.solver.scale or 1.0,
-                                                         spec.solver.two_sided, spec.solver.workplane)
+            settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
+                                      spec.solver.workplane)
             job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
                                     spec.preview_height or 480, extra={"error_curve": self.curve_dict(job)})
             job.residual = run.ledger.residual()

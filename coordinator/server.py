@@ -12,11 +12,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import signal
 from pathlib import Path
 
 import grpc
-from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 from dcrad.errors import DcradError, ExchangeError
 from dcrad.v1 import dcrad_pb2 as pb
@@ -25,10 +23,10 @@ from dcrad.wire import FileAssembler, file_chunks
 
 from .jobs import TERMINAL, JobManager
 from .remote import WorkerPool
+from .rpc import shutdown, start_server, stop_on_signals
 
 log = logging.getLogger("dcrad.coordinator")
 
-MAX_MESSAGE = 8 * 1024 * 1024
 #: default upload limit (bytes) for one job's scene files
 MAX_UPLOAD = 512 * 1024 * 1024
 
@@ -117,15 +115,9 @@ async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "
     """
     pool = WorkerPool()
     manager = JobManager(Path(root), pool, worker_wait=worker_wait, preview_interval=preview_interval)
-    server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
-                                      ("grpc.max_send_message_length", MAX_MESSAGE)])
-    pb_grpc.add_CoordinatorServicer_to_server(CoordinatorServicer(manager, max_upload), server)
-    health_servicer = health.aio.HealthServicer()
-    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    bound = server.add_insecure_port(f"{host}:{port}")
-    await server.start()
-    await health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
-    await health_servicer.set("dcrad.v1.Coordinator", health_pb2.HealthCheckResponse.SERVING)
+    servicer = CoordinatorServicer(manager, max_upload)
+    server, health_servicer, bound = await start_server(
+        lambda s: pb_grpc.add_CoordinatorServicer_to_server(servicer, s), "dcrad.v1.Coordinator", host, port)
     log.info("coordinator listening on %s:%d, jobs in %s", host, bound, root)
     runner = None
     if web_port is not None:
@@ -135,21 +127,14 @@ async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "
             runner, web_url = await start_web(manager, web_host, web_port)
         except OSError as exc:
             await server.stop(grace=None)
-            raise DcradError(f"web status page: cannot listen on {web_host}:{web_port}: {exc.strerror or exc}") from None
+            raise DcradError(f"web status page: cannot listen on {web_host}:{web_port}: "
+                             f"{exc.strerror or exc}") from None
         log.info("status pages on %s", web_url)
         if web_ready is not None:
             web_ready(web_url)
     if ready is not None:
         ready(bound)
-    stop = stop or asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        try:
-            loop.add_signal_handler(sig, stop.set)
-        except (NotImplementedError, RuntimeError):
-            pass
+    stop = stop_on_signals(stop)
     await stop.wait()
-    await health_servicer.enter_graceful_shutdown()
-    if runner is not None:
-        await runner.cleanup()
-    await server.stop(grace=2.0)
+    tasks = [asyncio.create_task(runner.cleanup())] if runner is not None else []
+    await shutdown(server, health_servicer, tasks)

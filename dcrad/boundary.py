@@ -22,6 +22,7 @@ cell, bin), stored sparsely: only entries light actually crossed exist.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,8 +30,8 @@ import numpy as np
 from .errors import ConfigError, ExchangeError, PartitionError
 from .sampling import concentric_disk, concentric_disk_inverse
 
-__all__ = ["Boundary", "make_boundary", "coarsen_directions", "direction_levels", "TwinBuffer", "transfer", "RayParcel", "transfer_rays", "KEY_LIMIT",
-           "BoundaryMode", "MODES", "boundary_mode"]
+__all__ = ["Boundary", "make_boundary", "coarsen_directions", "direction_levels", "TwinBuffer", "transfer", "RayParcel",
+           "transfer_rays", "KEY_LIMIT", "BoundaryMode", "MODES", "boundary_mode"]
 
 KEY_LIMIT = np.iinfo(np.int64).max  # packed keys must stay <= this
 
@@ -197,9 +198,8 @@ def make_boundary(
     if not cell_size > 0:
         raise PartitionError(f"boundary {id}: cell_size must be > 0, got {cell_size}")
     # the 1e-9 keeps 0.3 / 0.1 = 2.9999999999999996 -> 3 and 1.0 / 0.1 from becoming 11
-    cells = tuple(
-        max(1, math.ceil((h - l) / cell_size - 1e-9)) for l, h in zip(lo, hi)
-    )
+    cells = (max(1, math.ceil((hi[0] - lo[0]) / cell_size - 1e-9)),
+             max(1, math.ceil((hi[1] - lo[1]) / cell_size - 1e-9)))
     return Boundary(
         id=int(id), axis=int(axis), offset=float(offset),
         lo=(float(lo[0]), float(lo[1])), hi=(float(hi[0]), float(hi[1])),
@@ -542,7 +542,7 @@ class RayParcel:
 def transfer_rays(incoming: dict, boundaries: list) -> dict:
     """Route recorded crossing rays to the cell on the far side of their boundary."""
     by_id = {b.id: b for b in boundaries}
-    out = {}
+    out: dict[int, RayParcel] = {}
     for b in boundaries:
         out.setdefault(b.side_a, RayParcel())
         out.setdefault(b.side_b, RayParcel())
@@ -588,12 +588,12 @@ class BoundaryMode:
     """
 
     name: str
-    buffer: type
-    sent: object
-    record: object
-    transfer: object
+    buffer: type[TwinBuffer] | type[RayParcel]
+    sent: Callable[[int, int], TwinBuffer | RayParcel]
+    record: Callable[..., None]
+    transfer: Callable[[dict, list], dict]
 
-    def empty(self):
+    def empty(self) -> TwinBuffer | RayParcel:
         """An empty delivery (for a cell that nothing crossed into)."""
         return self.sent(1, 1)
 

@@ -102,7 +102,7 @@ def _curve(snaps, snap_B, ref, area, ref_rms, k: int) -> list[dict]:
 
 # == claims ========================================================================
 def _claims(runs: list[dict]) -> dict:
-    seq = next((r for r in runs if r["k"] == 1), None)
+    seq = next(r for r in runs if r["k"] == 1)
     divided = [r for r in runs if r["k"] > 1]
     S = seq["points"]
     sx, sy = [p["shots"] for p in S], [p["rms_norm"] for p in S]
@@ -164,7 +164,7 @@ def compare(path, subscenes=(1, 2, 4, 8), config: SolverConfig = SolverConfig(),
         raise ConfigError(f"ref_rays_factor={ref_rays_factor} must be > 0")
     scene, patches, size = prepare(path, patch_size)
     area, n = patches.area.copy(), len(patches)
-    ref_info = {"patches": n}
+    ref_info: dict[str, object] = {"patches": n}
     if reference is not None:
         ref = _load_reference(reference, n, area, size)
         ref_info |= {"source": "file", "file": str(reference)}

@@ -83,7 +83,7 @@ class Ledger:
 
     def as_dict(self) -> dict:
         """JSON-ready: every account as [r, g, b] W, plus closure and residual."""
-        out = {k: [float(x) for x in v] for k, v in self.as_arrays().items()}
+        out: dict[str, list[float] | float] = {k: [float(x) for x in v] for k, v in self.as_arrays().items()}
         out["closure"] = self.closure()
         out["residual"] = self.residual()
         return out

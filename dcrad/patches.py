@@ -36,6 +36,9 @@ def remap_twin(twin: np.ndarray, parent: np.ndarray) -> np.ndarray:
     Row i gets the first row whose parent is ``twin[parent[i]]`` (-1 if none): exact
     for rows copied whole, the same surface nearby for clipped pieces.
     """
+    parent = np.asarray(parent, np.int64)
+    if not len(parent):
+        return np.zeros(0, np.int64)
     tp = twin[parent]
     order = np.argsort(parent, kind="stable")
     sorted_parent = parent[order]
@@ -93,9 +96,10 @@ class Patches:
     source: np.ndarray
     obj: np.ndarray
     names: list = field(default_factory=list)
-    radiosity: np.ndarray | None = None
-    unshot: np.ndarray | None = None
-    twin: np.ndarray | None = None
+    # None (the default) is filled in by __post_init__: the attributes are always arrays
+    radiosity: np.ndarray = None  # type: ignore[assignment]
+    unshot: np.ndarray = None  # type: ignore[assignment]
+    twin: np.ndarray = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, np.float64)

@@ -20,7 +20,7 @@ from .errors import SceneError
 from .patches import Patches
 from .rays import Tracer
 from .report import TIMINGS, RunBooks, run_report, write_json
-from .solve import GREY_CHOICE, Solver, Stats, stiff_choice
+from .solve import GREY_CHOICE, Stats, stiff_choice
 
 __all__ = ["default_patch_size", "prepare", "write_outputs", "solve_to", "resolve_scene", "divided_books",
            "finish_run"]
@@ -74,16 +74,22 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
 
 
 def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str | None = None,
-            two_sided: bool = False):
+            two_sided: bool = False, timings: dict | None = None):
     """Load, validate and mesh a scene: returns (scene, patches, patch_size used).
 
-    ``up`` (None: detect) and ``two_sided``: see scene.load_scene.
+    ``up`` (None: detect) and ``two_sided``: see scene.load_scene.  ``timings`` (a dict)
+    receives ``load_s`` (file to validated triangles) and ``mesh_s`` (triangles to patches).
     """
     from .scene import load_scene
 
+    t0 = time.perf_counter()
     scene = load_scene(path, scale=scale, up=up, two_sided=two_sided)
+    t1 = time.perf_counter()
     size = patch_size if patch_size and patch_size > 0 else default_patch_size(scene)
-    return scene, scene.patches(size), size
+    patches = scene.patches(size)
+    if timings is not None:
+        timings.update(load_s=t1 - t0, mesh_s=time.perf_counter() - t1)
+    return scene, patches, size
 
 
 def scene_settings(scene, patch_size: float, scale: float, two_sided: bool = False,
@@ -104,20 +110,22 @@ def _is_floor_plan(patches: Patches) -> bool:
 
 
 def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: int = 480,
-                  sections: dict | None = None, workplane: float = 0.0) -> dict:
+                  sections: dict | None = None, workplane: float = 0.0, tracer: Tracer | None = None) -> dict:
     """Write every output file; return {name: relative path} of what was written.
 
     Meshes are written in the input file's frame (``scene.rotation``); views use one
     exposure from the lit surfaces (render.scene_exposure).  ``sections`` (a dict)
     receives the report's ``photometry`` section; ``workplane`` > 0 adds a work-plane
-    grid that many metres above the floor.
+    grid that many metres above the floor.  ``tracer``: an Embree scene over
+    ``patches.triangles`` to reuse (the solve's; at 1.27M patches a second one cost
+    4 s and 175 MB); None: build one.
     """
     from . import export, photometry, render
 
     out.mkdir(parents=True, exist_ok=True)
     written = {}
     exposure = render.scene_exposure(patches)
-    tracer = Tracer(patches.triangles)
+    tracer = tracer if tracer is not None else Tracer(patches.triangles)
     h, gathered = photometry.irradiance(patches, tracer)
     lux = photometry.to_lux(h)
     # one smoothing pass for B and the false colour's channels (lux, front coverage, back coverage)
@@ -223,32 +231,35 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
         choices.append(stiff_choice(run.stiff, config) + " (for the whole divided job)")
     divided = {"subscenes": len(states), "boundaries": len(boundaries), "barriers": run.barriers,
                "mode": divide.mode, "iterations": divide.iterations,
-               "barrier_batches": ("adaptive, at most %d" % divide.max_iterations) if divide.adaptive
+               "barrier_batches": f"adaptive, at most {divide.max_iterations}" if divide.adaptive
                else divide.iterations, "solid": divide.solid,
                "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
                "partition": part.as_dict()}
     choices.append(describe(config))
     if run.stopped_by == "noise_floor":
         choices.append(noise_floor_note(run.estimate, config.accuracy))
-    return RunBooks(patches, config, run.ledger, stats, list(run.snapshots), list(run.snapshot_B), back,
+    return RunBooks(patches, config, run.ledger, stats, list(run.snapshots), run.snapshot_B, back,
                     choices, dict(timings or {}), divided, estimate=run.estimate)
 
 
-def finish_run(out: Path, scene, books: RunBooks, settings: dict, width: int = 640, height: int = 480,
-               extra: dict | None = None) -> dict:
+def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int = 640, height: int = 480,
+               extra: dict | None = None, tracer: Tracer | None = None) -> dict:
     """Write every output and report.json for a finished run; return the report.
 
     The one ending of every path (``solve_to`` single and divided, the
-    coordinator's jobs).  ``settings``: the report's settings (the SolverConfig's
-    fields and the scene's); ``extra``: more top-level report sections (the
-    service's error curve).  ``books.timings`` gains ``outputs_s``.
+    coordinator's jobs).  The report's settings are the run's SolverConfig as it
+    ran (``books.config``) and ``scene_values`` (``scene_settings``); ``extra``: more
+    top-level report sections (the service's error curve).  ``books.timings`` gains
+    ``outputs_s``.  ``tracer``: the solve's Embree scene over ``books.patches``, reused
+    by the outputs (None: they build one).
     """
+    settings = books.config.as_dict() | scene_values
     out = Path(out)
     t0 = time.perf_counter()
     warnings = list(scene.warnings) + books.warnings()
     sections: dict = {}
     outputs = write_outputs(out, scene, books.patches, width, height, sections,
-                            float(settings.get("workplane_m") or 0.0))
+                            float(settings.get("workplane_m") or 0.0), tracer=tracer)
     books.timings["outputs_s"] = time.perf_counter() - t0
     timings = {k: float(books.timings.get(k, 0.0)) for k in TIMINGS} | books.timings
     report = run_report(scene, books, settings, timings, warnings, outputs)
@@ -306,10 +317,12 @@ def solve_to(
     config = config or SolverConfig()
     out = Path(out)
     t0 = time.perf_counter()
-    scene, patches, size = prepare(path, patch_size, scale, up, two_sided)
+    phases: dict = {}
+    scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases)
     t_load = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    tracer = None
     if divide is not None and divide.subscenes > 1:
         progress = (lambda run: on_progress(_DividedView(run))) if on_progress else None
         subs, boundaries, parents, part = build_subscenes(patches, config, divide,
@@ -317,7 +330,7 @@ def solve_to(
         t_setup = time.perf_counter() - t0
         run = run_subscenes(patches, subs, boundaries, parents, config, divide,
                             on_barrier=progress, should_stop=should_stop)
-        timings = {"load_and_mesh_s": t_load, "setup_s": t_setup, "solve_s": run.wall_seconds}
+        timings = {"load_and_mesh_s": t_load, **phases, "setup_s": t_setup, "solve_s": run.wall_seconds}
         books = divided_books(run, patches, config, boundaries, part, divide, timings)
     else:
         tracer = Tracer(patches.triangles)
@@ -327,12 +340,13 @@ def solve_to(
         solver.choices.append(describe(solver.config))
         if solver.stats.stopped_by == "noise_floor":
             solver.choices.append(noise_floor_note(solver.estimate(), solver.config.accuracy))
-        timings = {"load_and_mesh_s": t_load, "setup_s": t_setup, "solve_s": solver.stats.wall_seconds}
+        timings = {"load_and_mesh_s": t_load, **phases, "setup_s": t_setup, "solve_s": solver.stats.wall_seconds}
         books = RunBooks.of_solver(solver, timings)
+        del solver  # its tallies (noise, pool) go before the outputs; the Embree scene is reused
 
     # the settings as run: automatic ones (ray density, tol) resolved (accuracy.resolve)
-    settings = books.config.as_dict() | scene_settings(scene, size, scale, two_sided, workplane)
-    report = finish_run(out, scene, books, settings, width, height)
+    report = finish_run(out, scene, books, scene_settings(scene, size, scale, two_sided, workplane), width, height,
+                        tracer=tracer)
     for w in report["warnings"]:
         log.warning(w)
     return report

@@ -20,16 +20,20 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from google.protobuf.message import Message
 
 from .config import BOUNDARY_MODES, DivideConfig
 from .errors import ConfigError
 
-__all__ = ["add_flags", "add_scene_flags", "scene_values", "add_divide_flags", "divide_from_args", "from_args", "to_argv", "to_pb", "from_pb", "missing_on_wire", "flag_name"]
+__all__ = ["add_flags", "add_scene_flags", "scene_values", "add_divide_flags", "divide_from_args", "from_args",
+           "to_argv", "to_pb", "from_pb", "missing_on_wire", "flag_name"]
 
-T = TypeVar("T")
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+T = TypeVar("T", bound="DataclassInstance")  # a settings dataclass
 
 
 def flag_name(name: str) -> str:

@@ -8,8 +8,8 @@ as repeated floats, never pickled.  Only plain numeric dtypes are accepted.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Iterator
 from pathlib import PurePosixPath
-from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -137,7 +137,7 @@ def plan_fields(plan) -> dict:
         return {}
     return {"ambient_scale": [float(x) for x in plan.stiffness.scale],
             "ambient_rest": [float(x) for x in plan.rest], "ray_factor": float(plan.stiffness.ray_factor),
-            "return_ratio": float(plan.stiffness.ret)}
+            "return_ratio": float(plan.stiffness.ret), "time_left_s": float(plan.time_left)}
 
 
 def plan_from_pb(req: pb.IterateRequest):
@@ -145,13 +145,16 @@ def plan_from_pb(req: pb.IterateRequest):
     from .divide import BarrierPlan
     from .solve import Stiffness
 
-    if not req.ambient_scale and req.ray_factor <= 0:
+    if not req.ambient_scale and req.ray_factor <= 0 and req.time_left_s <= 0:
         return None
     scale = np.array(list(req.ambient_scale) or [0.0] * 3, np.float64)
     rest = np.array(list(req.ambient_rest) or [0.0] * 3, np.float64)
     if scale.shape != (3,) or rest.shape != (3,) or not (np.isfinite(scale).all() and np.isfinite(rest).all()):
         raise ExchangeError("barrier plan needs finite RGB ambient_scale and ambient_rest")
-    return BarrierPlan(Stiffness(scale, max(1.0, float(req.ray_factor)), float(req.return_ratio)), rest)
+    if not math.isfinite(req.time_left_s) or req.time_left_s < 0:
+        raise ExchangeError(f"barrier plan: time_left_s must be finite and >= 0, not {req.time_left_s}")
+    return BarrierPlan(Stiffness(scale, max(1.0, float(req.ray_factor)), float(req.return_ratio)), rest,
+                       float(req.time_left_s))
 
 
 def safe_relpath(path: str) -> str:

@@ -13,7 +13,8 @@ See :mod:`scenes.objwriter` for the file format details.
 from __future__ import annotations
 
 import pathlib
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 from .cornell import cornell_box
 from .furnace import furnace_box, furnace_expected

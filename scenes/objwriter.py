@@ -35,7 +35,7 @@ _AREA_EPS = 1e-12  # m^2; triangles smaller than this are refused
 def rgb(value) -> tuple[float, float, float]:
     """Scalar or 3-sequence -> tuple of three floats."""
     arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (3,))
-    return tuple(float(v) for v in arr)
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
 
 
 def _fmt(x: float) -> str:
@@ -116,7 +116,7 @@ class ObjWriter:
             raise ValueError(f"zero-area triangle in {self.objects[-1].name!r}: {p0} {p1} {p2}")
         self.objects[-1].faces.append((self._vertex(a), self._vertex(b), self._vertex(c)))
 
-    def add_quad(self, p0, p1, p2, p3, facing=None) -> None:
+    def add_quad(self, p0, p1, p2, p3, *, facing=None) -> None:
         """Add the quad p0-p1-p2-p3 (counter-clockwise from the front) as the
         triangles (p0, p1, p2) and (p0, p2, p3).
 

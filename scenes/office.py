@@ -186,8 +186,8 @@ def office_floor(
     for k in lit:
         i, j = divmod(k, cols)
         x0, z0, _, _ = room_rect(i, j, room, wall)
-        for m, (a, b) in enumerate((a, b) for a in range(n) for b in range(n)):
-            cx, cz = x0 + (a + 0.5) * cell, z0 + (b + 0.5) * cell
+        for m, (u, v) in enumerate((u, v) for u in range(n) for v in range(n)):
+            cx, cz = x0 + (u + 0.5) * cell, z0 + (v + 0.5) * cell
             w.begin(f"light_{i}_{j}_{m}", "light")
             w.add_rect(1, height - 0.01, (cx - lx / 2, cz - lz / 2), (cx + lx / 2, cz + lz / 2), -1)
 
@@ -195,7 +195,7 @@ def office_floor(
     for i in range(rows):
         for j in range(cols):
             x0, z0, x1, z1 = room_rect(i, j, room, wall)
-            placed = []
+            placed: list[tuple[float, float, float, float]] = []
             for k in range(int(rng.integers(1, 4))):
                 kind = "desk" if k == 0 or rng.random() < 0.4 else "cabinet"
                 (wa, wb), (da, db), (ha, hb) = _FURNITURE[kind]

@@ -220,6 +220,7 @@ def test_healthcheck_script_against_real_services(tmp_path):
 
 
 # -- with Docker ---------------------------------------------------------------------------
+@pytest.mark.docker
 @pytest.mark.parametrize("name", list(TOOLS))
 def test_compose_file_is_valid(docker_engine, name):
     """Each tool reads the file the same way: two services, two workers, loopback ports."""
@@ -239,6 +240,7 @@ def test_compose_file_is_valid(docker_engine, name):
     assert as_text == ["127.0.0.1:50051:50051/tcp", "127.0.0.1:8080:8080/tcp"]
 
 
+@pytest.mark.docker
 @pytest.mark.timeout(1800)
 @pytest.mark.parametrize("name", list(TOOLS))
 def test_compose_stack(docker_engine, build_inputs, embedded, name, tmp_path):

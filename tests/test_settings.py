@@ -75,7 +75,8 @@ def test_an_empty_message_means_the_defaults_and_explicit_zero_stays_zero():
     assert from_pb(DivideConfig, pb.DivideSettings()) == DivideConfig()
     # the old `s.tol or d.tol` turned tol 0 into 0.01 on the service path
     zero = SolverConfig(tol=0.0)
-    assert from_pb(SolverConfig, pb.SolverSettings.FromString(to_pb(zero, pb.SolverSettings).SerializeToString())).tol == 0.0
+    raw = to_pb(zero, pb.SolverSettings).SerializeToString()
+    assert from_pb(SolverConfig, pb.SolverSettings.FromString(raw)).tol == 0.0
     # as the client sends it: a dict of field names
     assert from_pb(SolverConfig, pb.SolverSettings(tol=0.0, seed=0)) == zero
 

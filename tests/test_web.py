@@ -132,6 +132,7 @@ def office(tmp_path_factory):
 
 
 # == the browser ==================================================================
+@pytest.mark.browser
 def test_job_page_grows_live_and_cancels_in_a_browser(cluster, office):
     # a tolerance it never reaches: the job runs until the page cancels it (time limit as a safety net)
     job = client.submit(cluster.address, office, {"tol": 1e-30, "time_limit": 180}, {"subscenes": 2})
@@ -180,6 +181,7 @@ def test_job_page_grows_live_and_cancels_in_a_browser(cluster, office):
 
 
 # == JSON API = watch stream ======================================================
+@pytest.mark.browser  # its last part reads the finished page in chromium
 def test_json_api_agrees_with_the_watch_stream(cluster, office, tmp_path):
     before = metrics(cluster)
     job = client.submit(cluster.address, office, {"tol": 1e-4, "seed": 3}, {"subscenes": 2})

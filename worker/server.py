@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import signal
 import time
 
 import grpc
-from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
+from coordinator.rpc import shutdown, start_server, stop_on_signals
 from dcrad.config import SolverConfig
 from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
@@ -26,9 +25,6 @@ from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb
 
 log = logging.getLogger("dcrad.worker")
-
-#: gRPC message size limits: chunks are 1 MB, leave room
-MAX_MESSAGE = 8 * 1024 * 1024
 
 
 def status_of(key: pb.SubsceneKey, sub: Subscene, compute_s: float = 0.0) -> pb.SubsceneStatus:
@@ -158,7 +154,7 @@ async def register_forever(coordinator: str, address: str, capacity: int, name: 
                 delay = min(max(delay * 2, 0.2), 2.0)
             try:
                 await asyncio.wait_for(stop.wait(), timeout=delay)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
 
 
@@ -166,37 +162,21 @@ async def serve(port: int = 0, host: str = "127.0.0.1", coordinator: str | None 
                 advertise: str | None = None, capacity: int = 4, name: str = "",
                 ready=None) -> None:
     """Run a worker until SIGTERM/SIGINT; ``ready(port)`` is called once listening."""
-    server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
-                                      ("grpc.max_send_message_length", MAX_MESSAGE),
-                                      # accept the coordinator's keepalive pings (every 2 s)
-                                      ("grpc.http2.min_recv_ping_interval_without_data_ms", 1000),
-                                      ("grpc.http2.min_ping_interval_without_data_ms", 1000),
-                                      ("grpc.keepalive_permit_without_calls", 1),
-                                      ("grpc.http2.max_ping_strikes", 0)])
-    pb_grpc.add_WorkerServicer_to_server(WorkerServicer(), server)
-    health_servicer = health.aio.HealthServicer()
-    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    bound = server.add_insecure_port(f"{host}:{port}")
-    await server.start()
-    await health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
-    await health_servicer.set("dcrad.v1.Worker", health_pb2.HealthCheckResponse.SERVING)
+    # accept the coordinator's keepalive pings (every 2 s)
+    keepalive = [("grpc.http2.min_recv_ping_interval_without_data_ms", 1000),
+                 ("grpc.http2.min_ping_interval_without_data_ms", 1000),
+                 ("grpc.keepalive_permit_without_calls", 1), ("grpc.http2.max_ping_strikes", 0)]
+    servicer = WorkerServicer()
+    server, health_servicer, bound = await start_server(
+        lambda s: pb_grpc.add_WorkerServicer_to_server(servicer, s), "dcrad.v1.Worker", host, port, keepalive)
     address = advertise or f"{host}:{bound}"
     log.info("worker listening on %s:%d (advertised as %s)", host, bound, address)
     if ready is not None:
         ready(bound)
 
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        try:
-            loop.add_signal_handler(sig, stop.set)
-        except (NotImplementedError, RuntimeError):
-            pass
+    stop = stop_on_signals()
     tasks = []
     if coordinator:
         tasks.append(asyncio.create_task(register_forever(coordinator, address, capacity, name or address, stop)))
     await stop.wait()
-    await health_servicer.enter_graceful_shutdown()
-    for t in tasks:
-        await t
-    await server.stop(grace=2.0)
+    await shutdown(server, health_servicer, tasks)
