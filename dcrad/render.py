@@ -155,7 +155,7 @@ def corner_radiosity(
     crease_angle_deg: float = 30.0,
     values: np.ndarray | None = None,
     merge_tol: float = 1e-7,
-    max_pairs: int = 1 << 22,
+    max_pairs: int = 1 << 20,
 ) -> np.ndarray:
     """Smooth per-corner radiosity that does not bleed across creases.
 
@@ -207,7 +207,7 @@ def corner_radiosity(
 
 
 # ---------------------------------------------------------------------------------
-def _openness(tracer: Tracer, lo: np.ndarray, hi: np.ndarray, axis: int, sign: float, k=9):
+def _escape_share(tracer: Tracer, lo: np.ndarray, hi: np.ndarray, axis: int, sign: float, k=9):
     """Fraction of rays leaving the box centre region toward a side that escape."""
     c = 0.5 * (lo + hi)
     others = [i for i in range(3) if i != axis]
@@ -227,7 +227,8 @@ def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
 
     Rays are cast from a grid on the mid-plane of the bounding box toward each
     of the four vertical sides (+-X, +-Z) and toward +Y; the fraction that
-    escapes is that side's openness.
+    escapes is that side's escape share (not partition.openness, which is the
+    share of a cutting plane in open space).
 
     * Some vertical side is mostly open (>= 50%; a Cornell box, or any scene
       that is not a closed room): the eye stands outside the most open side on
@@ -250,10 +251,10 @@ def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
     c = 0.5 * (lo + hi)
     tracer = Tracer(patches.triangles)
     sides = [(0, 1.0), (0, -1.0), (2, 1.0), (2, -1.0)]
-    open_ = [_openness(tracer, lo, hi, ax, sg) for ax, sg in sides]
-    best = int(np.argmax(open_))
+    escape = [_escape_share(tracer, lo, hi, ax, sg) for ax, sg in sides]
+    best = int(np.argmax(escape))
     aspect = width / height
-    if open_[best] >= 0.5:
+    if escape[best] >= 0.5:
         ax, sg = sides[best]
         across = ext[2 - ax]  # the horizontal extent seen across the image
         fov = 40.0
@@ -261,7 +262,7 @@ def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
         dist = 0.5 * ext[ax] + 1.05 * half / math.tan(math.radians(fov / 2))
         d = np.zeros(3)
         d[ax] = sg
-        if _openness(tracer, lo, hi, 1, 1.0) >= 0.5:
+        if _escape_share(tracer, lo, hi, 1, 1.0) >= 0.5:
             el = math.radians(30.0)
             d = d * math.cos(el) + np.array([0.0, math.sin(el), 0.0])
             dist += 0.5 * ext[1] * math.tan(el)  # step back: the box looks taller
