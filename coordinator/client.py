@@ -22,8 +22,9 @@ import grpc
 
 from dcrad.config import SolverConfig
 from dcrad.errors import DcradError, SceneFormatError
-from dcrad.objfile import inside_folder, read_mtl
+from dcrad.objfile import inside_folder, mtllib_files, mtllib_name, read_mtl
 from dcrad.progress import error_text, progress_fraction
+from dcrad.scene import gltf_files, gltf_header
 from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
@@ -62,18 +63,12 @@ def channel(address: str, attempts: int | None = None) -> grpc.Channel:
 
 # -- scene files ---------------------------------------------------------------------------
 def _obj_refs(text: str, label: str, folder: str) -> list[str]:
+    """The material files of an OBJ's mtllib lines, read as the loader reads them."""
     refs = []
     for no, raw in enumerate(text.splitlines(), 1):
-        parts = raw.split("#", 1)[0].split()
-        if len(parts) < 2 or parts[0] != "mtllib":
-            continue
-        name = " ".join(parts[1:]) if "#" in raw else raw.strip()[6:].strip()
-        where = f"{label} line {no}"
-        # like the loader: the whole rest of the line, else several names
-        names = [name] if os.path.isfile(inside_folder(folder, name, where, "mtllib")) else name.split()
-        for one in names:
-            inside_folder(folder, one, where, "mtllib")
-            refs.append(one)
+        name = mtllib_name(raw)
+        if name:
+            refs += mtllib_files(name, f"{label} line {no}", folder)
     return refs
 
 
@@ -87,22 +82,6 @@ def _texture_refs(mtllibs: list[str], folder: str) -> list[str]:
         for mat in read_mtl(full, one, folder).values():
             refs += [name for key, name in mat.textures if key.lower() == "map_kd"
                      and os.path.isfile(inside_folder(folder, name, one, "texture"))]
-    return refs
-
-
-def _gltf_refs(blob: bytes, label: str, folder: str) -> list[str]:
-    try:
-        header = json.loads(blob.decode("utf-8"))
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise SceneFormatError(f"cannot parse glTF {label}: {exc}") from None
-    refs = []
-    for kind in ("buffers", "images"):
-        items = header.get(kind, []) if isinstance(header, dict) else []
-        for i, item in enumerate(items if isinstance(items, list) else []):
-            uri = item.get("uri") if isinstance(item, dict) else None
-            if isinstance(uri, str) and not uri.startswith("data:"):
-                inside_folder(folder, uri, label, f"{kind[:-1]} {i}")
-                refs.append(uri)
     return refs
 
 
@@ -121,9 +100,9 @@ def scene_files(path) -> dict[str, bytes]:
         refs = _obj_refs(main.decode("utf-8", errors="replace"), str(path), folder)
         refs += _texture_refs(refs, folder)
     elif ext == ".gltf":
-        refs = _gltf_refs(main, str(path), folder)
+        refs = gltf_files(gltf_header(str(path)), str(path))
     else:
-        refs = []
+        refs = []  # a .glb carries its buffers
     files = {path.name: main}
     for ref in refs:
         rel = safe_relpath(os.path.relpath(inside_folder(folder, ref, str(path), "file"), folder).replace(os.sep, "/"))

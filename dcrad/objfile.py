@@ -110,7 +110,7 @@ def parse_obj(text: str, label: str) -> ObjData:
         elif key == "mtllib":
             if len(parts) < 2:
                 raise _fail(label, no, "'mtllib' needs a file name", raw)
-            mtllibs.append((" ".join(parts[1:]) if "#" in raw else raw.strip()[6:].strip(), no))
+            mtllibs.append((mtllib_name(raw), no))
 
     # -- vertices ------------------------------------------------------------------
     v = _numbers(" ".join(vtok), np.float64, len(vtok))
@@ -213,6 +213,24 @@ def inside_folder(folder: str, name: str, label: str, what: str) -> str:
     if norm == ".." or norm.startswith("../"):
         raise SceneFormatError(f"{label}: {what} path '{name}' resolves outside the scene folder")
     return os.path.join(folder, *norm.split("/"))
+
+
+def mtllib_name(raw: str) -> str:
+    """What an ``mtllib`` line names: the rest of the line (a '#' comment cut off, words then
+    joined by single spaces); "" when the line is not an mtllib line."""
+    parts = raw.split("#", 1)[0].split()
+    if len(parts) < 2 or parts[0] != "mtllib":
+        return ""
+    return " ".join(parts[1:]) if "#" in raw else raw.strip()[6:].strip()
+
+
+def mtllib_files(name: str, where: str, folder: str) -> list[str]:
+    """The material files an ``mtllib`` line names (``mtllib_name``): the whole name when
+    that file exists, else its space-separated names; each must lie inside ``folder``."""
+    names = [name] if os.path.isfile(inside_folder(folder, name, where, "mtllib")) else name.split()
+    for one in names:
+        inside_folder(folder, one, where, "mtllib")
+    return names
 
 
 # -- MTL ------------------------------------------------------------------------------

@@ -47,10 +47,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-
 from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
-from .objfile import inside_folder, parse_obj, read_mtl
+from .objfile import inside_folder, mtllib_files, parse_obj, read_mtl
 from .patches import Patches, subdivide, triangle_areas, triangle_normals
 from .texture import read_texture, uv_means
 
@@ -199,8 +198,7 @@ def _load_obj(path: str, warnings: list):
     materials = {}
     for name, no in data.mtllibs:
         where = f"{path} line {no}"
-        files = [name] if os.path.isfile(inside_folder(folder, name, where, "mtllib")) else name.split()
-        for one in files:
+        for one in mtllib_files(name, where, folder):
             full = inside_folder(folder, one, where, "mtllib")
             if not os.path.isfile(full):
                 raise SceneFormatError(f"{where}: mtllib file '{one}' not found next to the scene")
@@ -285,7 +283,8 @@ def _textured_rho(factor, image, uv, where: str, written: str, warnings: list) -
 
 
 # -- glTF ----------------------------------------------------------------------------------
-def _gltf_json(path: str) -> dict:
+def gltf_header(path: str) -> dict:
+    """The JSON header of a .gltf or .glb file, its file references checked (``gltf_files``)."""
     try:
         with open(path, "rb") as fh:
             blob = fh.read()
@@ -303,13 +302,23 @@ def _gltf_json(path: str) -> dict:
             raise ValueError("top level is not a JSON object")
     except (ValueError, struct.error, UnicodeDecodeError) as exc:
         raise SceneFormatError(f"cannot parse glTF {path}: {exc}") from None
+    gltf_files(header, path)
+    return header
+
+
+def gltf_files(header: dict, path: str) -> list[str]:
+    """The files (buffers, images) a glTF header refers to by URI, as written; each must lie
+    inside the scene's folder (data: URIs are inline, not files)."""
     folder = os.path.dirname(os.path.abspath(path))
+    refs = []
     for kind in ("buffers", "images"):
-        for i, item in enumerate(header.get(kind, [])):
+        items = header.get(kind, [])
+        for i, item in enumerate(items if isinstance(items, list) else []):
             uri = item.get("uri") if isinstance(item, dict) else None
             if isinstance(uri, str) and not uri.startswith("data:"):
                 inside_folder(folder, uri, path, f"{kind[:-1]} {i}")
-    return header
+                refs.append(uri)
+    return refs
 
 
 def _node_matrix(node: dict) -> np.ndarray:
@@ -494,7 +503,7 @@ def _gltf_blob(path: str, header: dict, uri, image: dict) -> bytes:
 def _load_gltf(path: str, warnings: list, scale: float):
     import trimesh
 
-    header = _gltf_json(path)
+    header = gltf_header(path)
     table = _gltf_materials(header, path, warnings)
     by_label = {}
     for i, m in enumerate(header.get("materials", [])):
