@@ -124,8 +124,9 @@ def test_checkpoint_resumes_bit_identically(office, mode):
     subs, bnds, parents, part = build_subscenes(p, cfg, DivideConfig(subscenes=2, mode=mode))
     run_divided(subs, bnds, cfg.replace(max_rays=400_000), 2)
     a = subs[0]
-    clone = build_subscene(a.cell, cfg, a.power_per_ray, mode, a.patches.names,
-                           {**subscene_arrays(a), **checkpoint_arrays(a)})
+    # the subscene's own (resolved) config, as a worker gets it in the header
+    clone = build_subscene(a.cell, a.config, a.power_per_ray, mode, a.patches.names,
+                           {**subscene_arrays(a), **checkpoint_arrays(a)}, a.local_target)
     a.iterate(3)
     clone.iterate(3)
     assert np.array_equal(a.patches.radiosity, clone.patches.radiosity)

@@ -22,7 +22,7 @@ import pytest
 import scenes
 from coordinator.embedded import LocalCluster, max_local_workers
 from coordinator.remote import WorkerPool
-from dcrad.config import SolverConfig
+from dcrad.config import DivideConfig, SolverConfig
 from dcrad.pipeline import solve_to
 from test_service import fetch, npz, submit, watch
 
@@ -145,3 +145,22 @@ def test_a_worker_restarted_on_the_same_address_shows_its_new_name():
     pool.register("10.0.0.5:50052", 2, "new-container")
     (w,) = pool.workers.values()
     assert (w.name, w.capacity) == ("new-container", 2)
+
+
+def test_time_limit_holds_inside_a_barrier(tmp_path, cluster):
+    """A barrier of 2000 batches per subscene would run for minutes; the time limit (1 s)
+    ends it after the batch that passes the deadline, in process and on a worker (the
+    deadline travels in the barrier plan).  Before: the limit was checked at barriers only."""
+    path = scenes.write_builtin("furnace", tmp_path / "furnace", rho=0.99)
+    report = solve_to(path, tmp_path / "out", SolverConfig(tol=1e-12, time_limit=1.0),
+                      divide=DivideConfig(subscenes=2, iterations=2000, mode="binned"))
+    job = submit(cluster.address, path.parent, path.name, {"tol": 1e-12, "time_limit": 1.0},
+                 {"subscenes": 2, "iterations": 2000, "mode": "binned"})
+    final = watch(cluster.address, job.job_id)[-1]
+    assert final.job.state == "done", final.job.error
+    remote = json.loads(bytes(fetch(cluster.address, job.job_id)["report.json"]))
+    for r in (report, remote):
+        assert r["stats"]["stopped_by"] == "time_limit"
+        assert r["divided"]["barriers"] == 1  # the first barrier ended at the deadline
+        assert 2 <= r["stats"]["batches"] < 2 * 2000
+        assert r["ledger"]["closure"] < 1e-9
