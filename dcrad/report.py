@@ -123,7 +123,7 @@ def error_section(est) -> dict | None:
         return None
     out = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in est.as_dict().items()}
     out["note"] = ("estimate, not a measurement: rms in W/m^2, rms_norm over RMS(B), rms_refl/noise_refl/"
-                   "bias_refl over RMS(B - E); preview images may be filtered, radiosity data never is")
+                   "bias_refl over RMS(B - E); previews are rendered from this B, unfiltered")
     return out
 
 

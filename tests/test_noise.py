@@ -104,13 +104,17 @@ def test_split_rays_carry_the_shot_power_exactly():
 
 def test_combine_normalisations():
     """rms over RMS(B) and over RMS(B - E) from area-weighted sums; noise is |D|/2."""
-    sums = NoiseSums(d2=4.0 * 0.01, b2=4.0, r2=1.0, rho2=np.zeros(3), area=1.0)
+    sums = NoiseSums(d2=4.0 * 0.01, b2=4.0, r2=1.0, area=1.0, r1=np.ones(3), rho1=np.full(3, 0.5))
     est = combine(sums, np.zeros(3))
     assert est.rms == pytest.approx(0.1)
     assert est.rms_norm == pytest.approx(0.05)
     assert est.rms_refl == pytest.approx(0.1)
     assert est.bias_refl == 0.0
-    assert math.isinf(combine(NoiseSums(d2=1.0, b2=1.0, r2=0.0, rho2=np.zeros(3), area=1.0), np.zeros(3)).rms_refl)
+    assert math.isinf(combine(NoiseSums(d2=1.0, b2=1.0, r2=0.0, area=1.0), np.zeros(3)).rms_refl)
+    # bias: 0.1 W/m^2 still to arrive on rho 0.5 (0.15 W in all) against 3 W reflected so far: 5%
+    biased = combine(sums, np.full(3, 0.1))
+    assert biased.bias_refl == pytest.approx(0.05) and biased.noise_refl == pytest.approx(0.1)
+    assert NoiseSums.from_list(sums.as_list()).as_list() == sums.as_list()
 
 
 def test_resolve_is_idempotent_and_tol_is_expert():
