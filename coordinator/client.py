@@ -28,11 +28,11 @@ from dcrad.scene import gltf_files, gltf_header
 from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
-from dcrad.wire import FileAssembler, file_chunks, safe_relpath
+from dcrad.wire import FileSink, path_chunks, safe_relpath
 
 from .rpc import MAX_MESSAGE
 
-__all__ = ["DEFAULT_ADDRESS", "channel", "scene_files", "submit", "watch", "fetch", "cancel", "list_jobs",
+__all__ = ["DEFAULT_ADDRESS", "channel", "scene_files", "scene_paths", "submit", "watch", "fetch", "cancel", "list_jobs",
            "rpc_message", "add_client_commands"]
 
 DEFAULT_ADDRESS = "127.0.0.1:50051"
@@ -62,10 +62,11 @@ def channel(address: str, attempts: int | None = None) -> grpc.Channel:
 
 
 # -- scene files ---------------------------------------------------------------------------
-def _obj_refs(text: str, label: str, folder: str) -> list[str]:
-    """The material files of an OBJ's mtllib lines, read as the loader reads them."""
+def _obj_refs(lines, label: str, folder: str) -> list[str]:
+    """The material files of an OBJ's mtllib lines (an iterable of lines, or the whole text),
+    read as the loader reads them."""
     refs = []
-    for no, raw in enumerate(text.splitlines(), 1):
+    for no, raw in enumerate(lines.splitlines() if isinstance(lines, str) else lines, 1):
         name = mtllib_name(raw)
         if name:
             refs += mtllib_files(name, f"{label} line {no}", folder)
@@ -85,34 +86,45 @@ def _texture_refs(mtllibs: list[str], folder: str) -> list[str]:
     return refs
 
 
-def scene_files(path) -> dict[str, bytes]:
-    """{relative path: bytes}: the scene file first, then the files it references."""
+def scene_paths(path) -> dict[str, Path]:
+    """{relative path: file}: the scene file first, then the files it references.
+
+    The OBJ is scanned line by line for its mtllib lines: memory does not grow with the file.
+    """
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in (".obj", ".gltf", ".glb"):
         raise SceneFormatError(f"unsupported scene format '{ext}' for {path}; use .obj, .gltf or .glb")
     folder = str(path.parent.resolve())
     try:
-        main = path.read_bytes()
+        if ext == ".obj":
+            with open(path, encoding="utf-8", errors="replace", newline=None) as f:
+                refs = _obj_refs(f, str(path), folder)
+            refs += _texture_refs(refs, folder)
+        elif ext == ".gltf":
+            refs = gltf_files(gltf_header(str(path)), str(path))
+        else:
+            path.stat()
+            refs = []  # a .glb carries its buffers
     except OSError as exc:
         raise SceneFormatError(f"cannot read scene file {path}: {exc.strerror or exc}") from None
-    if ext == ".obj":
-        refs = _obj_refs(main.decode("utf-8", errors="replace"), str(path), folder)
-        refs += _texture_refs(refs, folder)
-    elif ext == ".gltf":
-        refs = gltf_files(gltf_header(str(path)), str(path))
-    else:
-        refs = []  # a .glb carries its buffers
-    files = {path.name: main}
+    files = {path.name: path}
     for ref in refs:
         rel = safe_relpath(os.path.relpath(inside_folder(folder, ref, str(path), "file"), folder).replace(os.sep, "/"))
         if rel in files:
             continue
-        try:
-            files[rel] = (path.parent / rel).read_bytes()
-        except OSError as exc:
-            raise SceneFormatError(f"{path}: referenced file '{ref}' cannot be read: {exc.strerror or exc}") from None
+        if not (path.parent / rel).is_file():
+            raise SceneFormatError(f"{path}: referenced file '{ref}' cannot be read: no such file")
+        files[rel] = path.parent / rel
     return files
+
+
+def scene_files(path) -> dict[str, bytes]:
+    """{relative path: bytes} of ``scene_paths`` (reads every file: for small scenes and tests)."""
+    try:
+        return {rel: p.read_bytes() for rel, p in scene_paths(path).items()}
+    except OSError as exc:
+        raise SceneFormatError(f"{path}: a scene file cannot be read: {exc.strerror or exc}") from None
 
 
 # -- calls ---------------------------------------------------------------------------------
@@ -120,8 +132,8 @@ def _requests(scene: str, files: dict, solver: dict, divide: dict, preview: tupl
     yield pb.SubmitRequest(spec=pb.JobSpec(scene=scene, solver=pb.SolverSettings(**solver),
                                            divide=pb.DivideSettings(**divide),
                                            preview_width=preview[0], preview_height=preview[1]))
-    for rel, data in files.items():
-        for chunk in file_chunks(data, rel):
+    for rel, file in files.items():  # streamed from disk, one chunk at a time
+        for chunk in path_chunks(file, rel):
             yield pb.SubmitRequest(file=chunk)
 
 
@@ -131,7 +143,7 @@ def submit(address: str, path, solver: dict | None = None, divide: dict | None =
 
     preview: (width, height) of the preview images in pixels; 0 means the default.
     """
-    files = scene_files(path)
+    files = scene_paths(path)
     solver = {k: v for k, v in (solver or {}).items() if v is not None}
     divide = {k: v for k, v in (divide or {}).items() if v is not None}
     with channel(address) as ch:
@@ -154,21 +166,20 @@ def watch(address: str, job_id: str, on_progress=None) -> pb.Progress | None:
 
 
 def fetch(address: str, job_id: str, out_dir) -> list[Path]:
-    """Download the job's result files under ``out_dir``; the paths written."""
-    asm, totals = FileAssembler(max_bytes=1 << 40), {}
-    with channel(address) as ch:
-        for chunk in pb_grpc.CoordinatorStub(ch).Fetch(pb.JobRef(job_id=job_id)):
-            asm.add(chunk)
-            totals[safe_relpath(chunk.path)] = chunk.total_bytes
-    out, written = Path(out_dir), []
-    for rel, buf in asm.files.items():
-        if len(buf) != totals[rel]:
-            raise DcradError(f"fetch of job '{job_id}': {rel} arrived with {len(buf)} of {totals[rel]} bytes")
-        target = out.joinpath(*rel.split("/"))
-        target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_bytes(bytes(buf))
-        written.append(target)
-    return written
+    """Download the job's result files under ``out_dir`` (written as they arrive); the paths written."""
+    out, totals = Path(out_dir), {}
+    sink = FileSink(out, max_bytes=1 << 40)
+    try:
+        with channel(address) as ch:
+            for chunk in pb_grpc.CoordinatorStub(ch).Fetch(pb.JobRef(job_id=job_id)):
+                sink.add(chunk)
+                totals[safe_relpath(chunk.path)] = chunk.total_bytes
+    finally:
+        sink.close()
+    for rel, size in sink.files.items():
+        if size != totals[rel]:
+            raise DcradError(f"fetch of job '{job_id}': {rel} arrived with {size} of {totals[rel]} bytes")
+    return [out.joinpath(*rel.split("/")) for rel in sink.files]
 
 
 def cancel(address: str, job_id: str) -> pb.JobSummary:

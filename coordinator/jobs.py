@@ -362,15 +362,23 @@ class JobManager:
             self.start(job)
 
     # == submit ===================================================================
-    def create(self, spec: pb.JobSpec, files: dict[str, bytes]) -> Job:
-        """Store the upload and validate the scene; raises DcradError for a bad scene."""
+    def create(self, spec: pb.JobSpec, files: dict[str, bytes] | Path) -> Job:
+        """Store the upload and validate the scene; raises DcradError for a bad scene.
+
+        files: {relative path: bytes}, or a folder the upload was streamed into (moved, not copied).
+        """
         job = Job(id=uuid.uuid4().hex[:12], spec=spec, root=self.root / "jobs")
         job.root = self.root / "jobs" / job.id
         scene_dir = job.root / "scene"
-        for rel, data in files.items():
-            dest = scene_dir / rel
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            dest.write_bytes(bytes(data))
+        if isinstance(files, Path):
+            scene_dir.parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(str(files), str(scene_dir))
+            files = {p.relative_to(scene_dir).as_posix(): b"" for p in scene_dir.rglob("*") if p.is_file()}
+        else:
+            for rel, data in files.items():
+                dest = scene_dir / rel
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                dest.write_bytes(bytes(data))
         if spec.scene not in files:
             shutil.rmtree(job.root, ignore_errors=True)
             raise DcradError(f"the upload has no file '{spec.scene}' (the scene named in the job)")

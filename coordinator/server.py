@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import shutil
+import uuid
 from pathlib import Path
 
 import grpc
@@ -19,7 +21,7 @@ import grpc
 from dcrad.errors import DcradError, ExchangeError
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
-from dcrad.wire import FileAssembler, file_chunks
+from dcrad.wire import FileSink, path_chunks
 
 from .jobs import TERMINAL, JobManager
 from .remote import WorkerPool
@@ -44,24 +46,33 @@ class CoordinatorServicer(pb_grpc.CoordinatorServicer):
 
     async def Submit(self, request_iterator, context):
         spec = None
-        files = FileAssembler(self.max_upload)
+        # the upload goes to disk chunk by chunk (memory: one chunk), then becomes the job's scene/
+        staging = self.manager.root / "incoming" / uuid.uuid4().hex
+        files = FileSink(staging, self.max_upload)
         try:
-            async for req in request_iterator:
-                if req.HasField("spec"):
-                    spec = req.spec
-                elif spec is None:
-                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Submit must start with the job spec")
-                else:
-                    files.add(req.file)
-        except ExchangeError as exc:
-            code = grpc.StatusCode.RESOURCE_EXHAUSTED if "too large" in str(exc) else grpc.StatusCode.INVALID_ARGUMENT
-            await context.abort(code, str(exc))
-        if spec is None:
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Submit had no job spec")
-        try:
-            job = await asyncio.to_thread(self.manager.create, spec, files.files)
-        except DcradError as exc:
-            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+            try:
+                async for req in request_iterator:
+                    if req.HasField("spec"):
+                        spec = req.spec
+                    elif spec is None:
+                        await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Submit must start with the job spec")
+                    else:
+                        files.add(req.file)
+            except ExchangeError as exc:
+                code = (grpc.StatusCode.RESOURCE_EXHAUSTED if "too large" in str(exc)
+                        else grpc.StatusCode.INVALID_ARGUMENT)
+                await context.abort(code, str(exc))
+            finally:
+                files.close()
+            if spec is None:
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Submit had no job spec")
+            staging.mkdir(parents=True, exist_ok=True)  # an upload of no files is still a folder
+            try:
+                job = await asyncio.to_thread(self.manager.create, spec, staging)
+            except DcradError as exc:
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)  # moved into the job, or refused
         self.manager.start(job)
         log.info("job %s submitted: %s", job.id, spec.scene)
         return job.summary()
@@ -80,7 +91,7 @@ class CoordinatorServicer(pb_grpc.CoordinatorServicer):
                                 f"(and for cancelled ones, up to where they stopped)")
         for path in sorted(p for p in out.rglob("*") if p.is_file()):
             rel = path.relative_to(out).as_posix()
-            for chunk in file_chunks(path.read_bytes(), rel):
+            for chunk in path_chunks(path, rel):
                 yield chunk
 
     async def Cancel(self, request, context):

@@ -231,7 +231,7 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
         from .scene import load_scene
 
         load_scene(path, scale=args.scale, up=args.up, two_sided=args.two_sided)
-        client.scene_files(path)
+        client.scene_paths(path)
         with LocalCluster(workers=args.workers) as cluster:
             print(f"dcrad: coordinator {cluster.address} with {args.workers} local workers", file=sys.stderr)
             solver = config.as_dict() | scene_values(args)
@@ -346,7 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=int(env.get("DCRAD_PORT", "50051")), help="gRPC port (0: any free)")
     p.add_argument("--data", default=env.get("DCRAD_DATA", "dcrad-coordinator"), help="folder for uploads and results")
     p.add_argument("--max-upload", type=int, default=int(env.get("DCRAD_MAX_UPLOAD", str(512 * 1024 * 1024))),
-                   help="largest scene upload in bytes")
+                   help="largest scene upload in bytes, all files of a job together (default 536870912 = "
+                        "512 MiB, or $DCRAD_MAX_UPLOAD); uploads are streamed to disk as they arrive")
     p.add_argument("--worker-wait", type=float, default=60.0, help="seconds a job waits for a first worker")
     p.add_argument("--web-port", type=int, default=int(env.get("DCRAD_WEB_PORT", "8080")),
                    help="port of the web status pages (default 8080; 0: any free port; -1: off)")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Iterator
-from pathlib import PurePosixPath
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -20,6 +20,7 @@ from .v1 import dcrad_pb2 as pb
 __all__ = [
     "CHUNK_BYTES", "ALLOWED_DTYPES", "array_chunks", "arrays_to_chunks", "ArrayAssembler", "assemble_arrays",
     "ledger_to_pb", "ledger_from_pb", "estimate_to_pb", "file_chunks", "FileAssembler", "safe_relpath",
+    "path_chunks", "FileSink",
 ]
 
 #: bytes of payload per chunk: far below gRPC's 4 MB default
@@ -168,6 +169,57 @@ def safe_relpath(path: str) -> str:
 def file_chunks(data: bytes, relpath: str, chunk: int = CHUNK_BYTES) -> Iterator[pb.FileChunk]:
     for offset, piece in _pieces(data, chunk):
         yield pb.FileChunk(path=relpath, offset=offset, total_bytes=len(data), data=piece)
+
+
+def path_chunks(path, relpath: str, chunk: int = CHUNK_BYTES) -> Iterator[pb.FileChunk]:
+    """``file_chunks`` of a file on disk, read one chunk at a time (memory: one chunk)."""
+    path = Path(path)
+    total = path.stat().st_size
+    offset = 0
+    with open(path, "rb") as f:
+        while True:
+            piece = f.read(chunk)
+            if not piece and offset > 0:
+                return
+            yield pb.FileChunk(path=relpath, offset=offset, total_bytes=total, data=piece)
+            offset += len(piece)
+            if not piece or offset >= total:
+                return
+
+
+class FileSink:
+    """Write FileChunk messages under ``folder`` as they come (memory: one chunk), with
+    the same checks as ``FileAssembler``: safe relative paths, chunks in order, at most
+    ``max_bytes`` in all.  ``files`` is {relpath: bytes written}."""
+
+    def __init__(self, folder, max_bytes: int):
+        self.folder, self.max_bytes = Path(folder), max_bytes
+        self.files: dict[str, int] = {}
+        self.total = 0
+        self._open: tuple[str, object] | None = None
+
+    def add(self, c: pb.FileChunk) -> None:
+        path = safe_relpath(c.path)
+        if c.total_bytes > self.max_bytes:
+            raise ExchangeError(f"upload too large: {path} is {c.total_bytes} bytes, limit {self.max_bytes}")
+        have = self.files.get(path, 0)
+        if c.offset != have:
+            raise ExchangeError(f"file {path}: chunk at offset {c.offset}, expected {have}")
+        self.total += len(c.data)
+        if self.total > self.max_bytes:
+            raise ExchangeError(f"upload too large: more than the limit of {self.max_bytes} bytes")
+        if self._open is None or self._open[0] != path:
+            self.close()
+            target = self.folder.joinpath(*path.split("/"))
+            target.parent.mkdir(parents=True, exist_ok=True)
+            self._open = (path, open(target, "ab" if have else "wb"))
+        self._open[1].write(c.data)
+        self.files[path] = have + len(c.data)
+
+    def close(self) -> None:
+        if self._open is not None:
+            self._open[1].close()
+            self._open = None
 
 
 class FileAssembler:

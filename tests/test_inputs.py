@@ -23,7 +23,10 @@ import scenes
 from coordinator.embedded import LocalCluster, max_local_workers
 from coordinator.remote import WorkerPool
 from dcrad.config import DivideConfig, SolverConfig
+from dcrad.errors import ExchangeError
 from dcrad.pipeline import solve_to
+from dcrad.v1 import dcrad_pb2 as pb
+from dcrad.wire import FileSink, path_chunks
 from test_service import fetch, npz, submit, watch
 
 CORNELL_PATCH = 0.06  #: m: a coarse mesh, for speed
@@ -164,3 +167,39 @@ def test_time_limit_holds_inside_a_barrier(tmp_path, cluster):
         assert r["divided"]["barriers"] == 1  # the first barrier ended at the deadline
         assert 2 <= r["stats"]["batches"] < 2 * 2000
         assert r["ledger"]["closure"] < 1e-9
+
+
+def test_uploads_stream_to_disk_chunk_by_chunk(tmp_path):
+    """FileSink writes each chunk where it belongs as it comes (nothing is held), with the
+    same checks as the in-memory assembler: order, safe paths, the size limit."""
+    src = tmp_path / "src" / "scene.obj"
+    src.parent.mkdir()
+    src.write_bytes(bytes(range(256)) * 5000)  # 1.28 MB: two chunks of 1 MiB and a tail
+    chunks = list(path_chunks(src, "sub/scene.obj"))
+    assert len(chunks) == 2 and sum(len(c.data) for c in chunks) == src.stat().st_size
+    sink = FileSink(tmp_path / "dst", max_bytes=10 << 20)
+    sink.add(chunks[0])
+    assert (tmp_path / "dst" / "sub" / "scene.obj").stat().st_size == len(chunks[0].data)  # on disk already
+    sink.add(chunks[1])
+    sink.close()
+    assert (tmp_path / "dst" / "sub" / "scene.obj").read_bytes() == src.read_bytes()
+    with pytest.raises(ExchangeError, match="too large"):
+        FileSink(tmp_path / "small", max_bytes=1000).add(chunks[0])
+    with pytest.raises(ExchangeError, match="offset"):
+        FileSink(tmp_path / "order", max_bytes=10 << 20).add(chunks[1])
+    with pytest.raises(ExchangeError, match="relative"):
+        FileSink(tmp_path / "esc", max_bytes=10 << 20).add(pb.FileChunk(path="../x", total_bytes=1, data=b"x"))
+    empty = tmp_path / "src" / "empty.mtl"
+    empty.write_bytes(b"")
+    sink = FileSink(tmp_path / "dst", max_bytes=10)
+    for c in path_chunks(empty, "empty.mtl"):
+        sink.add(c)
+    sink.close()
+    assert (tmp_path / "dst" / "empty.mtl").read_bytes() == b"" and sink.files == {"empty.mtl": 0}
+
+
+def test_max_upload_is_documented():
+    r = dcrad("coordinator", "--help")
+    assert "512 MiB" in r.stdout and "DCRAD_MAX_UPLOAD" in r.stdout
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert "512 MiB" in readme
