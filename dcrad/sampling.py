@@ -17,6 +17,7 @@ __all__ = [
     "concentric_disk",
     "concentric_disk_inverse",
     "cosine_hemisphere",
+    "cosine_hemisphere_columns",
     "onb",
 ]
 
@@ -106,6 +107,28 @@ def cosine_hemisphere(u: np.ndarray) -> np.ndarray:
     d = concentric_disk(u)
     z = np.sqrt(np.maximum(0, 1 - np.einsum("ij,ij->i", d, d)))
     return np.column_stack([d, z])
+
+
+def cosine_hemisphere_columns(u0: np.ndarray, u1: np.ndarray):
+    """:func:`cosine_hemisphere` on separate coordinate columns: (m,), (m,) -> x, y, z (m,) each.
+
+    The same map, element for element; contiguous columns keep every step a
+    plain vector loop (a (m,2) view's strided columns made it 1.5-3x slower).
+    """
+    one = u0.dtype.type(1)
+    a = 2 * u0 - one
+    b = 2 * u1 - one
+    first = np.abs(a) > np.abs(b)
+    r = np.where(first, a, b)
+    num = np.where(first, b, a)
+    den = np.where(r == 0, one, r)
+    quarter = u0.dtype.type(np.pi / 4)
+    ratio = quarter * (num / den)
+    phi = np.where(first, ratio, 2 * quarter - ratio)
+    x = r * np.cos(phi)
+    y = r * np.sin(phi)
+    z = np.sqrt(np.maximum(0, one - (x * x + y * y)))
+    return x, y, z
 
 
 def onb(n: np.ndarray):

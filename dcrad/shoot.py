@@ -16,11 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .arrays import colsum, rowsum
 from .config import TOL
-from .patches import Patches
 from .noise import half_mask, split_power
+from .patches import Patches
 from .rays import MISS, Tracer
-from .sampling import cosine_hemisphere, lattice, onb
+from .sampling import cosine_hemisphere_columns, kronecker_alpha, lattice, onb
 
 __all__ = ["RayBatch", "Tally", "ray_lattice", "per_ray_power", "patch_rays", "compact", "trace", "deposit"]
 
@@ -117,79 +118,108 @@ def patch_rays(
     Each shooter gets two randomly shifted 4-D lattices (2 dims position, 2 dims
     direction), one per half, so its rays are stratified over the triangle and the
     hemisphere and the halves are independent.
-    """
-    owner, u = ray_lattice(counts, rng, dtype=np.float32, halves=True)
 
-    # Per-shooter geometry, repeated per ray (np.repeat is ~8x faster than a gather)
+    Per-ray work runs on contiguous coordinate columns (structure of arrays): the
+    (m,3) views' strided columns made the frame products 3x slower (bench_scale).
+    Positions: the shooter's lifted corner in float64 plus its edges in float32.
+    """
+    owner, u = ray_columns(counts, rng, halves=True)
+
+    # Per-shooter geometry (k rows), repeated per ray as columns (np.repeat: ~8x a gather)
     faces = patches.faces[shooters]
     v = patches.vertices
     v0 = v[faces[:, 0]]
     n_k = patches.normal[shooters]
     t_k, b_k = onb(n_k)
-    frames = np.repeat(np.stack([t_k, b_k, n_k], axis=1).astype(np.float32), counts, axis=0)
-    corners = np.repeat(np.stack([v0, v[faces[:, 1]] - v0, v[faces[:, 2]] - v0], axis=1), counts, axis=0)
+    edges = np.concatenate([v[faces[:, 1]] - v0, v[faces[:, 2]] - v0, t_k, b_k, n_k], axis=1)
+    g = np.repeat(np.ascontiguousarray(edges.T, np.float32), counts, axis=1)  # (15, m)
+    base = np.repeat(np.ascontiguousarray((v0 + ray_offset(patches) * n_k).T), counts, axis=1)  # (3, m)
 
-    # Stratified points on the triangles (float64 positions), lifted off the surface
-    s = np.sqrt(u[:, 0])
-    b1 = (s * (1 - u[:, 1])).astype(np.float64)
-    b2 = (s * u[:, 1]).astype(np.float64)
-    origins = corners[:, 0] + b1[:, None] * corners[:, 1] + b2[:, None] * corners[:, 2]
-    origins += ray_offset(patches) * frames[:, 2]
-
-    # Cosine directions in each shooter's frame (float32: Embree's precision)
-    local = cosine_hemisphere(u[:, 2:])
-    dirs = np.einsum("mi,mij->mj", local, frames)
+    # Stratified points on the triangles (square-root map), lifted off the surface
+    s = np.sqrt(u[0])
+    b2 = s * u[1]
+    b1 = s - b2
+    m = len(owner)
+    origins = np.empty((m, 3))
+    dirs = np.empty((m, 3), np.float32)
+    x, y, z = cosine_hemisphere_columns(u[2], u[3])  # cosine directions in the shooter's frame
+    for c in range(3):
+        origins[:, c] = base[c] + (b1 * g[c] + b2 * g[3 + c])
+        dirs[:, c] = x * g[6 + c] + y * g[9 + c] + z * g[12 + c]
     return RayBatch(origins=origins, dirs=dirs, power=split_power(power, counts, diff), shooter=owner,
                     half=half_mask(counts, rng))
 
 
+def ray_columns(counts: np.ndarray, rng: np.random.Generator, halves: bool = False):
+    """:func:`ray_lattice` as float32 columns: (owner (m,) i8, u (4, m) f32), the same numbers.
+
+    Draws the same random shifts from ``rng`` in the same order.
+    """
+    k = len(counts)
+    owner = np.repeat(np.arange(k), counts)
+    sets = np.stack([(counts + 1) // 2, counts // 2], axis=1).ravel() if halves else counts
+    start = np.cumsum(sets) - sets
+    index = np.arange(int(counts.sum())) - np.repeat(start, sets)
+    shift = np.repeat(np.ascontiguousarray(rng.random((len(sets), 4)).T), sets, axis=1)
+    u = (index + 0.5)[None, :] * kronecker_alpha(4)[:, None] + shift
+    u -= np.floor(u)
+    return owner, u.astype(np.float32)
+
+
 def compact(index: np.ndarray, scratch: np.ndarray):
-    """Distinct values of ``index`` (m,) and each entry's slot among them, in O(m).
+    """Distinct values of ``index`` (m,), sorted, and each entry's slot among them.
 
     scratch: an int array at least as long as the largest value + 1 (its content
-    does not matter and is overwritten).  Returns (rows (k,) the distinct values
-    in order of last appearance, slot (m,) with ``rows[slot] == index``).  No sort
-    and no pass over the whole scratch array: the cost follows the rays, not the patches.
+    does not matter and is overwritten).  Returns (rows (k,) the distinct values in
+    increasing order, slot (m,) with ``rows[slot] == index``).  O(m + k log k): no
+    pass over the whole scratch array, so the cost follows the rays, not the
+    patches.  Sorted rows keep every later gather and scatter on the patch table
+    (deposit, the ledger, the noise tallies) in memory order: at random rows those
+    cost 5-20x more on this machine (bench/RESULTS.md).
     """
     m = len(index)
     order = np.arange(m, dtype=scratch.dtype)
-    scratch[index] = order  # the last ray to write a patch speaks for it
-    last = scratch[index]
-    first = last == order
-    slot_of = np.cumsum(first, dtype=np.int64) - 1
-    return index[first], slot_of[last]
+    scratch[index] = order  # the last entry to write a value speaks for it
+    rows = np.sort(index[scratch[index] == order])
+    scratch[rows] = np.arange(len(rows), dtype=scratch.dtype)
+    return rows, scratch[index]
 
 
 def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) -> Tally:
     """Trace a batch and tally where its power went (no state is changed).
 
     The tally is sparse: ``received`` holds one row per patch hit on the front
-    (``hit``), so its cost follows the rays, not the size of the patch table.
+    (``hit``, sorted), so its cost follows the rays, not the size of the patch table.
+    Front or back comes from Embree's geometric normal of the hit (no gather of
+    patch normals at random rows).
     channels=1 (grey scenes: every rho, E and ray power has equal channels) tallies
     the first channel and copies it: the result is the same, one bincount instead of three.
     """
     n = len(patches)
-    prim, t = tracer.intersect(batch.origins, batch.dirs)
+    prim, t, ng = tracer.intersect(batch.origins, batch.dirs, normals=True)
     missed = prim == MISS
     if tracer.n > n:  # boundary primitives follow the patches (subscenes)
+        on_patch = ~missed & (prim < n)
         portal = np.flatnonzero(~missed & (prim >= n))
-        on_patch = np.flatnonzero(~missed & (prim < n))
     else:
+        on_patch = ~missed
         portal = np.zeros(0, np.int64)
-        on_patch = np.flatnonzero(~missed)
 
     # Front or back: the ray travels against the hit patch's normal on the front
-    rows = prim[on_patch]
-    facing = np.einsum("ij,ij->i", batch.dirs[on_patch], patches.normal[rows])
-    is_front = facing < 0.0
+    facing = np.einsum("ij,ij->i", batch.dirs, ng)
+    front_mask = on_patch & (facing < 0.0)
     if patches.two_sided:  # a two-sided patch met from behind: the ray lands on its back side (twin)
-        twin = patches.twin[rows]
-        flip = ~is_front & (twin >= 0)
-        rows, is_front = np.where(flip, twin, rows), is_front | flip
-    front, back = on_patch[is_front], on_patch[~is_front]
+        behind = np.flatnonzero(on_patch & ~front_mask)
+        twin = patches.twin[prim[behind]]
+        flip = behind[twin >= 0]
+        prim = prim.copy()
+        prim[flip] = twin[twin >= 0]
+        front_mask[flip] = True
+    front = np.flatnonzero(front_mask)
+    back = np.flatnonzero(on_patch & ~front_mask)
 
     # Scatter power onto the patches hit, one bincount per channel over the compact slots
-    hit, slot = compact(rows[is_front], patches.scratch)
+    hit, slot = compact(prim[front], patches.scratch)
     k = len(hit)
     power_front = batch.power[front]
     received = np.empty((k, 3), np.float64)
@@ -211,36 +241,39 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
     # landed/kept per patch, not per ray: a gather of rho per ray cost a quarter of trace
     # time, and only the ratio kept/landed (mean rho where light lands) is used
     magnitude = np.abs(received)
-    landed = magnitude.sum(axis=0)
-    kept = (magnitude * patches.rho[hit]).sum(axis=0)
+    landed = colsum(magnitude)
+    kept = colsum(magnitude * patches.rho[hit])
     power_back = batch.power[back]
     power_missed = batch.power[missed]
-    back_by_obj = np.bincount(patches.obj[prim[back]], weights=power_back.sum(axis=1), minlength=patches.n_objects)
+    back_by_obj = np.bincount(patches.obj[prim[back]], weights=rowsum(power_back), minlength=patches.n_objects)
     return Tally(
         received=received,
         hit=hit,
-        escaped=power_missed.sum(axis=0),
-        back_faces=power_back.sum(axis=0),
+        escaped=colsum(power_missed),
+        back_faces=colsum(power_back),
         back_by_obj=back_by_obj,
         portal=portal,
         portal_prim=prim[portal] - n,
         portal_t=t[portal],
         landed=landed,
         kept=kept,
-        lost=np.abs(power_back).sum(axis=0) + np.abs(power_missed).sum(axis=0),
+        lost=colsum(np.abs(power_back)) + colsum(np.abs(power_missed)),
         received_a=received_a,
     )
 
 
-def deposit(patches: Patches, hit: np.ndarray, received: np.ndarray) -> np.ndarray:
+def deposit(patches: Patches, hit: np.ndarray, received: np.ndarray,
+            before: np.ndarray | None = None) -> np.ndarray:
     """Add received power to B and dB of the patches hit; return the absorbed power (3,) W.
 
     hit (k,) distinct patch indices, received (k,3) W (``Tally.hit``, ``Tally.received``).
     A patch keeps rho * received as radiosity and unshot radiosity (divided by its
     area) and absorbs the rest.  Cost O(k): only the rows hit are touched.
+    ``before``: ``patches.unshot[hit]`` when the caller has it already (one gather less:
+    at 1.27M patches each pass over the rows hit is a cache miss per row).
     """
     reflected = patches.rho[hit] * received
     gain = reflected / patches.area[hit, None]
     patches.radiosity[hit] += gain
-    patches.unshot[hit] += gain
-    return (received - reflected).sum(axis=0)
+    patches.unshot[hit] = (patches.unshot[hit] if before is None else before) + gain
+    return colsum(received - reflected)

@@ -228,7 +228,10 @@ class Solver:
             idx, counts = self.rank(power, floor, ray_factor=st.ray_factor)
             power, amounts = power[idx], amounts[idx]
         else:
-            rows, _ = self.pool.candidates(self.config.max_shooters, self._negligible)
+            k = self.config.max_shooters
+            rows, pr = self.pool.candidates(k, self._negligible)
+            if len(rows) > k:  # the pool's priorities are rank's: its top K is rank's top K
+                rows = rows[np.sort(np.argpartition(-pr, k - 1)[:k])]
             amounts = p.unshot[rows]
             power = amounts * p.area[rows, None]
             sel, counts = self.rank(power, floor, ray_factor=st.ray_factor)
@@ -238,12 +241,13 @@ class Solver:
         return idx[order], counts[order], power[order], amounts[order]
 
     # -- the ledger's unshot sums, kept incrementally -------------------------------
-    def book_unshot(self, rows: np.ndarray, before: np.ndarray) -> None:
-        """The unshot radiosity of ``rows`` (distinct) changed from ``before`` (k,3): update the sums.
+    def book_unshot(self, rows: np.ndarray, before: np.ndarray, after: np.ndarray | None = None) -> None:
+        """The unshot radiosity of ``rows`` (distinct) changed from ``before`` to ``after`` (k,3)
+        (None: read it): update the sums.
 
         O(k).  ``recount`` redoes them exactly every ``recount_every`` batches.
         """
-        after = self.patches.unshot[rows]
+        after = self.patches.unshot[rows] if after is None else after
         area = self.patches.area[rows, None]
         led = self.ledger
         led.unshot = led.unshot + colsum((after - before) * area)
@@ -252,8 +256,10 @@ class Solver:
     def release(self, rows: np.ndarray, amounts: np.ndarray) -> None:
         """Shooters ``rows`` (distinct) give up ``amounts`` (k,3) W/m^2 of unshot radiosity."""
         before = self.patches.unshot[rows]
-        self.patches.unshot[rows] = before - amounts
-        self.book_unshot(rows, before)
+        after = before - amounts
+        self.patches.unshot[rows] = after
+        self.book_unshot(rows, before, after)
+        self.pool.update(rows, after)
 
     def recount(self) -> None:
         """The unshot sums from the whole table (one O(patches) pass; drops the increments' round-off)."""
@@ -269,7 +275,6 @@ class Solver:
         shot: (m,3) W per ray of the rays patches shot (rays that continue light
         shot elsewhere, like twins', are not counted again).
         """
-        p = self.patches
         led = self.ledger
         led.absorbed = led.absorbed + absorbed
         led.escaped = led.escaped + tally.escaped
@@ -294,10 +299,12 @@ class Solver:
     def commit(self, batch, tally, shot=None) -> None:
         """Receivers keep rho of what arrived; book the batch (``shot``: see ``account``)."""
         self.noise.commit(self.patches, tally.hit, tally.received, tally.received_a)
-        before = self.patches.unshot[tally.hit]
-        absorbed = deposit(self.patches, tally.hit, tally.received)
-        self.book_unshot(tally.hit, before)
-        self.pool.touch(tally.hit)
+        p, hit = self.patches, tally.hit
+        before = p.unshot[hit]
+        absorbed = deposit(p, hit, tally.received, before)
+        after = p.unshot[hit]
+        self.book_unshot(hit, before, after)
+        self.pool.update(hit, after)
         self.account(batch.power if shot is None else shot, tally, absorbed, self.crossings(batch, tally))
 
     def counted(self, shots: int, rays: int) -> int:

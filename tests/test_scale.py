@@ -65,7 +65,7 @@ def test_pool_candidates_hold_the_true_top_k_under_deposits_and_shots():
         p.unshot[top] = 0.0  # shot
         hit = np.unique(rng.integers(0, n, 400))
         p.unshot[hit] += rng.exponential(0.3, (len(hit), 3))
-        pool.touch(hit)
+        pool.update(np.concatenate([top, hit[~np.isin(hit, top)]]))
     assert pool.rebuilds < 200 / 4
 
 
@@ -98,8 +98,8 @@ def test_sparse_tally_equals_a_dense_scatter(tmp_path):
     assert set(tally.hit.tolist()) == set(np.flatnonzero(dense.any(axis=1)).tolist())
     np.testing.assert_allclose(tally.received, dense[tally.hit], rtol=1e-12, atol=0)
     back = ok & ~front
-    np.testing.assert_allclose(tally.back_faces, batch.power[back].sum(axis=0), rtol=1e-12)
-    np.testing.assert_allclose(tally.escaped, batch.power[~ok].sum(axis=0), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(tally.back_faces, batch.power[back].sum(axis=0), rtol=1e-10)
+    np.testing.assert_allclose(tally.escaped, batch.power[~ok].sum(axis=0), rtol=1e-10, atol=1e-300)
 
 
 def test_incremental_ledger_equals_a_full_recount_after_many_batches(tmp_path):
@@ -127,7 +127,7 @@ def test_pool_solver_equals_full_sort_full_recount_solver(tmp_path):
         s.full_selection = full
         s.recount_every = 1 if full else s.recount_every
         picked = []
-        s.run(on_progress=lambda sv: picked.append(sv.stats.shots))
+        s.run(on_progress=lambda sv, picked=picked: picked.append(sv.stats.shots))
         runs.append((p.radiosity.copy(), picked, s.stats.rays, s.pool.rebuilds))
     (b_pool, shots_pool, rays_pool, rebuilds), (b_full, shots_full, rays_full, _) = runs
     assert rays_pool == rays_full and shots_pool == shots_full
