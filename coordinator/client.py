@@ -365,7 +365,8 @@ def cmd_cancel(args) -> int:
 def cmd_jobs(args) -> int:
     jobs = list_jobs(resolve_address(args.coordinator))
     rows = [("ID", "STATE", "SCENE", "SUBSCENES", "WORKERS", "ELAPSED", "RESIDUAL")]
-    rows += [(j.job_id, j.state, j.scene, str(j.subscenes), str(len(j.workers)), f"{j.elapsed_s:.1f}s",
+    # "-": no worker holds it yet (queued, or being prepared), rather than a misleading 0
+    rows += [(j.job_id, j.state, j.scene, str(j.subscenes or "-"), str(len(j.workers) or "-"), f"{j.elapsed_s:.1f}s",
               f"{j.residual:.2e}") for j in jobs]
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     for r in rows:

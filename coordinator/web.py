@@ -35,6 +35,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from dcrad.config import DivideConfig
 from dcrad.v1 import dcrad_pb2 as pb
@@ -57,10 +58,9 @@ def summary_dict(s: pb.JobSummary) -> dict:
 
 def ledger_dict(led: pb.Ledger) -> dict:
     """Accounts in W per channel (RGB), their totals, closure and residual."""
-    d = {k: list(getattr(led, k)) for k in ACCOUNTS}
-    d["total"] = {k: sum(v) for k, v in d.items()}
-    d["closure"], d["residual"] = led.closure, led.residual
-    return d
+    accounts = {k: list(getattr(led, k)) for k in ACCOUNTS}
+    return accounts | {"total": {k: sum(v) for k, v in accounts.items()}, "closure": led.closure,
+                       "residual": led.residual}
 
 
 def progress_dict(p: pb.Progress) -> dict:
@@ -199,7 +199,8 @@ def _job(request: web.Request) -> Job:
     job_id = request.match_info["job_id"]
     job = request.app[MANAGER].get(job_id)
     if job is None:
-        raise _Problem(404, f"job '{job_id}' not found")
+        shown = job_id if len(job_id) <= 64 else f"{job_id[:32]}...({len(job_id)} characters)"
+        raise _Problem(404, f"job '{shown}' not found")
     return job
 
 
@@ -296,12 +297,28 @@ def url(host: str, port: int) -> str:
     return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
 
 
+MAX_LINE = 32 * 1024  #: bytes of a request line or header the web endpoint reads
+
+
+def _one_line_bad_requests(record: logging.LogRecord) -> bool:
+    """aiohttp logs a malformed request (a line too long, bad syntax) with a traceback: one line."""
+    exc = record.exc_info[1] if record.exc_info else None
+    if isinstance(exc, HttpProcessingError):
+        record.msg, record.args = "web: refused a bad HTTP request (%d): %s", (exc.code, exc.message.splitlines()[0][:120])
+        record.exc_info, record.exc_text, record.levelno, record.levelname = None, None, logging.INFO, "INFO"
+    return True
+
+
 async def start_web(manager: JobManager, host: str = "127.0.0.1", port: int = 0) -> tuple[web.AppRunner, str]:
     """Serve the status pages on ``host:port`` (0: any free port); (runner, base URL).
 
     Call ``await runner.cleanup()`` to stop.
     """
-    runner = web.AppRunner(make_app(manager), access_log=None, shutdown_timeout=2.0)
+    # ids up to 32 KB reach the routes (and get a 404); a longer request line gets aiohttp's 400,
+    # logged as one line instead of a traceback
+    runner = web.AppRunner(make_app(manager), access_log=None, shutdown_timeout=2.0, max_line_size=MAX_LINE,
+                           max_field_size=MAX_LINE)
+    logging.getLogger("aiohttp.server").addFilter(_one_line_bad_requests)
     await runner.setup()
     await web.TCPSite(runner, host, port).start()
     bound = runner.addresses[0][1]

@@ -313,7 +313,8 @@ def test_cli_fetch_cancel_jobs(fake, tmp_path, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split() == ["ID", "STATE", "SCENE", "SUBSCENES", "WORKERS", "ELAPSED", "RESIDUAL"]
     assert lines[1].split() == ["job-1", "running", "office.obj", "4", "2", "12.2s", "3.10e-02"]
-    assert lines[2].split()[:3] == ["job-2", "queued", "cornell.gltf"]
+    # a queued job has no subscenes or workers yet: "-", not a misleading 0
+    assert lines[2].split()[:5] == ["job-2", "queued", "cornell.gltf", "-", "-"]
 
 
 @pytest.mark.skipif(os.name != "posix", reason="SIGINT")

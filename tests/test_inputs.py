@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 import grpc
@@ -203,3 +205,18 @@ def test_max_upload_is_documented():
     assert "512 MiB" in r.stdout and "DCRAD_MAX_UPLOAD" in r.stdout
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     assert "512 MiB" in readme
+
+
+def test_web_long_ids_get_a_clean_404_and_no_traceback(tmp_path):
+    """Before: an 8 KB id got aiohttp's 400 with a traceback in the coordinator's log."""
+    with LocalCluster(workers=0, data=tmp_path) as c:
+        for route in ("/jobs/", "/api/jobs/", "/jobs/x/preview.png?id="):
+            with pytest.raises(urllib.error.HTTPError) as e:
+                urllib.request.urlopen(c.web_url + route + "y" * 8200, timeout=30)
+            body = e.value.read()
+            assert e.value.code == 404 and len(body) < 4000, (route, e.value.code)
+        with pytest.raises(urllib.error.HTTPError) as e:  # beyond what is read at all: a plain 400
+            urllib.request.urlopen(c.web_url + "/jobs/" + "y" * 40000, timeout=30)
+        assert e.value.code == 400
+    log = "".join(p.read_text() for p in tmp_path.glob("coordinator-*.log"))
+    assert "Traceback" not in log and "refused a bad HTTP request (400)" in log

@@ -49,6 +49,7 @@ function preview(j) {
   const img = $("preview");
   if (!j.preview || String(j.preview.version) === img.dataset.version) return;
   img.src = j.preview.url;
+  img.hidden = false;  // no image element before the first preview (no broken-image icon)
   img.dataset.version = j.preview.version;
   $("preview-note").textContent = `barrier ${j.preview.barrier} (preview ${j.preview.version}); ` +
     (TERMINAL.has(j.state) ? "final state" : "refreshed at barriers, at most every few seconds");
