@@ -145,7 +145,8 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     export.write_glb(out / "scene.glb", patches, corners, exposure=exposure, rotation=scene.rotation)
     written["mesh"] = "scene.glb"
 
-    camera = render.camera_from_dict(scene.camera, width, height) if scene.camera else render.auto_camera(patches, width, height)
+    camera = (render.camera_from_dict(scene.camera, width, height) if scene.camera
+              else render.auto_camera(patches, width, height))
     # each view is cast once: B (3 channels) and the false colour's (lux, front, back) together;
     # seen from behind, B shows the neutral flag grey and the false colour counts "back"
     flag = np.concatenate([np.multiply(render.BACKFACE_COLOR, 0.9 / exposure), [0.0, 0.0, 1.0 / np.pi]])
@@ -192,6 +193,12 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     return written
 
 
+def dense_twin_bytes(boundaries) -> int:
+    """Bytes dense twin buffers would hold: a sent and a pending buffer (RGB float64) for each
+    crossing of every portal cell and direction bin."""
+    return sum(2 * b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
+
+
 def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part, divide,
                   timings: dict[str, float] | None = None) -> RunBooks:
     """The books of a divided run (in process or on workers) from its last barrier's states.
@@ -213,7 +220,7 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
         choices.append(GREY_CHOICE)
     if divide.mode == "binned":
         # dense: a sent and a pending buffer for each crossing of every portal cell and bin
-        dense = sum(2 * b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
+        dense = dense_twin_bytes(boundaries)
         choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
                        f"against {dense} bytes dense (sent and pending, every portal cell, bin "
                        f"and crossing)")
@@ -234,12 +241,16 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
                "barrier_batches": f"adaptive, at most {divide.max_iterations}" if divide.adaptive
                else divide.iterations, "solid": divide.solid,
                "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
+               "twins_delivered": sum(s.twins_delivered for s in states),
+               "twin_blocks": sum(s.twin_blocks for s in states),
+               "dense_twin_bytes": dense_twin_bytes(boundaries) if divide.mode == "binned" else None,
                "partition": part.as_dict()}
     choices.append(describe(config))
     if run.stopped_by == "noise_floor":
         choices.append(noise_floor_note(run.estimate, config.accuracy))
     return RunBooks(patches, config, run.ledger, stats, list(run.snapshots), run.snapshot_B, back,
-                    choices, dict(timings or {}), divided, estimate=run.estimate)
+                    choices, dict(timings or {}), divided, estimate=run.estimate,
+                    channels=1 if patches.is_grey and len(patches) else 3, stiff=run.stiff)
 
 
 def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int = 640, height: int = 480,
@@ -264,6 +275,7 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     timings = {k: float(books.timings.get(k, 0.0)) for k in TIMINGS} | books.timings
     report = run_report(scene, books, settings, timings, warnings, outputs)
     report["divided"] = books.divided
+    report["channels"], report["stiffness"] = books.channels, books.stiffness()
     report.update(sections)
     report.update(extra or {})
     write_json(out / "report.json", report)

@@ -54,13 +54,24 @@ class RunBooks:
     divided: dict | None = None
     #: the error estimate at the end (``noise.Estimate``; None: not available)
     estimate: object = None
+    #: colour channels tallied (1: a grey scene, copied to the other two)
+    channels: int = 3
+    #: the ``solve.Stiffness`` that last changed how the run shot (None: never stiff)
+    stiff: object = None
 
     @classmethod
     def of_solver(cls, solver, timings: dict[str, float] | None = None) -> "RunBooks":
         """The books of a single ``Solver`` run."""
         return cls(solver.patches, solver.config, solver.ledger, solver.stats, list(solver.snapshots),
                    solver.snapshot_B, solver.back_by_obj.copy(), list(solver.choices), dict(timings or {}),
-                   estimate=solver.estimate())
+                   estimate=solver.estimate(), channels=solver.channels, stiff=solver.stiff)
+
+    def stiffness(self) -> dict | None:
+        """The report's ``stiffness``: the measured return ratio and what it changed (None: not stiff)."""
+        st = self.stiff
+        if st is None:
+            return None
+        return {"return_ratio": float(st.ret), "overshoot": bool(st.scale.any()), "ray_factor": float(st.ray_factor)}
 
     def residual(self) -> float:
         return self.ledger.residual()

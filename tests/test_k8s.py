@@ -159,11 +159,36 @@ def test_probes_use_the_health_check(compose, k8s, name):
         assert c[probe]["exec"]["command"] == test[1:], probe
 
 
+#: Kubernetes quantity suffixes
+_UNITS = {"": 1.0, "m": 1e-3, "k": 1e3, "M": 1e6, "G": 1e9, "Ki": 2.0**10, "Mi": 2.0**20, "Gi": 2.0**30, "Ti": 2.0**40}
+
+
+def quantity(q) -> float:
+    """A Kubernetes quantity ("500m", "2Gi", 1) as a number; a malformed one fails the test."""
+    m = re.fullmatch(r"([0-9]+(?:\.[0-9]+)?)([A-Za-z]*)", str(q))
+    assert m and m.group(2) in _UNITS, f"not a Kubernetes quantity: {q!r}"
+    return float(m.group(1)) * _UNITS[m.group(2)]
+
+
+def test_quantity():
+    assert quantity("500m") == 0.5 and quantity(1) == 1 and quantity("2Gi") == 2 * 1024**3
+    with pytest.raises(AssertionError):
+        quantity("2 GB")
+
+
 @pytest.mark.parametrize("name", ["coordinator", "worker"])
 def test_resource_requests(k8s, name):
-    resources = container(k8s, name)["resources"]
-    assert resources["requests"]["cpu"] and resources["requests"]["memory"]
-    assert resources["limits"]["memory"]
+    c = container(k8s, name)
+    requests, limits = c["resources"]["requests"], c["resources"]["limits"]
+    cpu, memory, limit = quantity(requests["cpu"]), quantity(requests["memory"]), quantity(limits["memory"])
+    assert cpu > 0 and 0 < memory <= limit
+    if name == "coordinator":
+        # it holds a whole upload while assembling it (and the scene it meshes): room for two
+        env = k8s_env(c)
+        upload = int(env.get("DCRAD_MAX_UPLOAD") or build_parser().parse_args(["coordinator"]).max_upload)
+        assert limit >= 2 * upload, (limit, upload)
+    else:
+        assert cpu >= 1  # a worker traces rays: at least one core
 
 
 def test_results_volume(compose, k8s):
