@@ -23,6 +23,7 @@ import grpc
 from dcrad.config import SolverConfig
 from dcrad.errors import DcradError, SceneFormatError
 from dcrad.objfile import inside_folder, mtllib_files, mtllib_name, read_mtl
+from dcrad.pipeline import resolve_scene
 from dcrad.progress import error_text, progress_fraction
 from dcrad.scene import gltf_files, gltf_header
 from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
@@ -32,8 +33,8 @@ from dcrad.wire import FileSink, path_chunks, safe_relpath
 
 from .rpc import MAX_MESSAGE
 
-__all__ = ["DEFAULT_ADDRESS", "channel", "scene_files", "scene_paths", "submit", "watch", "fetch", "cancel", "list_jobs",
-           "rpc_message", "add_client_commands"]
+__all__ = ["DEFAULT_ADDRESS", "channel", "scene_files", "scene_paths", "submit", "watch", "fetch", "cancel",
+           "list_jobs", "rpc_message", "add_client_commands"]
 
 DEFAULT_ADDRESS = "127.0.0.1:50051"
 #: attempts per call on UNAVAILABLE (gRPC caps it at 5; < 2 disables retries)
@@ -317,8 +318,6 @@ def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
 
 @_handled
 def cmd_submit(args) -> int:
-    from dcrad.pipeline import resolve_scene
-
     address = resolve_address(args.coordinator)
     solver = from_args(SolverConfig, args).as_dict() | scene_values(args)
     # subscenes 0 travels as 0: the coordinator makes one per registered worker

@@ -304,7 +304,8 @@ def _one_line_bad_requests(record: logging.LogRecord) -> bool:
     """aiohttp logs a malformed request (a line too long, bad syntax) with a traceback: one line."""
     exc = record.exc_info[1] if record.exc_info else None
     if isinstance(exc, HttpProcessingError):
-        record.msg, record.args = "web: refused a bad HTTP request (%d): %s", (exc.code, exc.message.splitlines()[0][:120])
+        first = (exc.message.splitlines() or [""])[0][:120]
+        record.msg, record.args = "web: refused a bad HTTP request (%d): %s", (exc.code, first)
         record.exc_info, record.exc_text, record.levelno, record.levelname = None, None, logging.INFO, "INFO"
     return True
 

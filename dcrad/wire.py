@@ -10,11 +10,14 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Iterator
 from pathlib import Path, PurePosixPath
+from typing import BinaryIO
 
 import numpy as np
 
+from .divide import BarrierPlan
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .errors import ExchangeError
+from .solve import Stiffness
 from .v1 import dcrad_pb2 as pb
 
 __all__ = [
@@ -143,8 +146,6 @@ def plan_fields(plan) -> dict:
 
 def plan_from_pb(req: pb.IterateRequest):
     """The BarrierPlan an IterateRequest carries, or None."""
-    from .divide import BarrierPlan
-    from .solve import Stiffness
 
     if not req.ambient_scale and req.ray_factor <= 0 and req.time_left_s <= 0:
         return None
@@ -196,7 +197,7 @@ class FileSink:
         self.folder, self.max_bytes = Path(folder), max_bytes
         self.files: dict[str, int] = {}
         self.total = 0
-        self._open: tuple[str, object] | None = None
+        self._open: tuple[str, BinaryIO] | None = None
 
     def add(self, c: pb.FileChunk) -> None:
         path = safe_relpath(c.path)

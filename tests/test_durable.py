@@ -16,6 +16,7 @@ import time
 import grpc
 import numpy as np
 import pytest
+from test_service import fetch, npz, submit, watch
 
 import scenes
 from coordinator.embedded import LocalCluster
@@ -23,12 +24,18 @@ from coordinator.jobs import JobManager
 from coordinator.remote import WorkerPool
 from coordinator.store import CheckpointWriter, JobRecord, JobStore, decode_delta, encode_delta
 from dcrad.config import SolverConfig
-from dcrad.divide import (DivideConfig, assemble, build_subscene, build_subscenes, checkpoint_arrays, run_divided,
-                          subscene_arrays)
+from dcrad.divide import (
+    DivideConfig,
+    assemble,
+    build_subscene,
+    build_subscenes,
+    checkpoint_arrays,
+    run_divided,
+    subscene_arrays,
+)
 from dcrad.pipeline import prepare
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
-from test_service import fetch, npz, submit, watch
 
 SOLVER = {"tol": 0.002, "seed": 5}
 DIVIDE = {"subscenes": 2}

@@ -20,6 +20,7 @@ from pathlib import Path
 import grpc
 import numpy as np
 import pytest
+from test_service import fetch, npz, submit, watch
 
 import scenes
 from coordinator.embedded import LocalCluster, max_local_workers
@@ -29,7 +30,6 @@ from dcrad.errors import ExchangeError
 from dcrad.pipeline import solve_to
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import FileSink, path_chunks
-from test_service import fetch, npz, submit, watch
 
 CORNELL_PATCH = 0.06  #: m: a coarse mesh, for speed
 
