@@ -51,7 +51,7 @@ from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
 from .objfile import inside_folder, mtllib_files, parse_obj, read_mtl
 from .patches import Patches, subdivide, triangle_areas, triangle_normals
-from .texture import read_texture, uv_means
+from .texture import read_texture, uv_at, uv_means
 
 __all__ = ["Scene", "load_scene", "DEFAULT_RHO", "UP_AXES", "detect_up"]
 
@@ -75,6 +75,17 @@ UP_AXES = {
 
 
 @dataclass
+class TextureMap:
+    """A textured material's triangles: their rows in the scene, the factor, the linear image
+    and the UV corners (len(rows), 3, 2), kept so patches can take their own UV sub-triangles."""
+
+    rows: np.ndarray
+    factor: np.ndarray
+    image: np.ndarray
+    uv: np.ndarray
+
+
+@dataclass
 class Scene:
     """Input triangles and their materials, as loaded (see module docstring)."""
 
@@ -93,6 +104,7 @@ class Scene:
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))  # input -> internal frame
     two_sided: np.ndarray | None = None  # (T,) bool, None: all one-sided
     textured: list = field(default_factory=list)  # material labels whose reflectance came from a texture
+    texture_maps: list = field(default_factory=list)  # [TextureMap]: per-patch texture means when meshing
 
     def __len__(self) -> int:
         return len(self.faces)
@@ -114,6 +126,7 @@ class Scene:
             raise ConfigError(f"cannot mesh {self.path} with max_edge={max_edge}: {exc}") from None
         src = keep[idx]
         emission = self.emission[src]
+        rho = self._patch_rho(v, f, src) if self.texture_maps and len(f) != len(keep) else self.rho[src]
         twin = None
         if self.two_sided is not None and self.two_sided[src].any():
             # back sides: the same triangles reversed, after every front patch; they reflect
@@ -125,10 +138,34 @@ class Scene:
             f = np.concatenate([f, f[back][:, [0, 2, 1]]])
             src = np.concatenate([src, src[back]])
             emission = np.concatenate([emission, np.zeros((len(back), 3))])
+            rho = np.concatenate([rho, rho[back]])
         return Patches(
-            vertices=v, faces=f, rho=self.rho[src], emission=emission,
+            vertices=v, faces=f, rho=rho, emission=emission,
             source=src, obj=self.obj[src], names=list(self.names), twin=twin,
         )
+
+    def _patch_rho(self, v: np.ndarray, f: np.ndarray, src: np.ndarray) -> np.ndarray:
+        """rho per patch; a textured patch takes the factor x the texture's mean over its own
+        UV sub-triangle (its corners mapped through its source triangle's UVs)."""
+        rho = self.rho[src].copy()
+        which = np.full(len(self.faces), -1, np.int64)
+        slot = np.zeros(len(self.faces), np.int64)
+        for i, tm in enumerate(self.texture_maps):
+            which[tm.rows], slot[tm.rows] = i, np.arange(len(tm.rows))
+        capped = False
+        for i, tm in enumerate(self.texture_maps):
+            sel = np.flatnonzero(which[src] == i)
+            if not len(sel):
+                continue
+            s = src[sel]
+            uv = uv_at(v[f[sel]], self.vertices[self.faces[s]], tm.uv[slot[s]])
+            got = tm.factor[None, :] * uv_means(tm.image, uv)
+            capped |= bool((got > RHO_MAX_TEXTURE).any())
+            rho[sel] = np.minimum(got, RHO_MAX_TEXTURE)
+        if capped:
+            self.warnings.append(f"{self.path}: some patches' texture means give reflectance above "
+                                 f"{RHO_MAX_TEXTURE}; capped")
+        return rho
 
     def to_input_frame(self, points: np.ndarray) -> np.ndarray:
         """Internal (Y-up) points or vectors (..., 3) -> the input file's frame."""
@@ -247,7 +284,7 @@ def _load_obj(path: str, warnings: list):
     label_ix = {n: i for i, n in enumerate(dict.fromkeys(names))}
     gmap = np.array([label_ix[n] for n in names], np.int32)
     g = data.group
-    rho_t, textured, images = rho[g], [], {}
+    rho_t, textured, images, tex_maps = rho[g], [], {}, []
     for k, (m, written, full) in maps.items():
         rows = np.flatnonzero(g == k)
         where = f"material '{m.name}' in {m.file}"
@@ -257,7 +294,8 @@ def _load_obj(path: str, warnings: list):
         uv = data.uv[rows] if data.uv is not None else np.full((len(rows), 3, 2), np.nan)
         rho_t[rows] = _textured_rho(rho[k], image, uv, where, written, warnings)
         textured.append(names[k])
-    extras = {"two_sided": sided[g], "textured": list(dict.fromkeys(textured))}
+        tex_maps.append(TextureMap(rows, rho[k].copy(), image, uv))
+    extras = {"two_sided": sided[g], "textured": list(dict.fromkeys(textured)), "maps": tex_maps}
     return data.vertices, data.faces, rho_t, em[g], gmap[g], list(label_ix), None, extras
 
 
@@ -509,7 +547,7 @@ def _load_gltf(path: str, warnings: list, scale: float):
     for i, m in enumerate(header.get("materials", [])):
         by_label.setdefault(m.get("name") or f"material{i}", m)
     images: dict = {}
-    sides, textured = [], []
+    sides, textured, tex_maps, nf = [], [], [], 0
     try:
         scene = trimesh.load(path, force="scene")
     except Exception as exc:  # trimesh raises many kinds
@@ -547,8 +585,10 @@ def _load_gltf(path: str, warnings: list, scale: float):
                 warnings.append(f"{where}: textured, but object '{obj}' has no texture coordinates; "
                                 f"using the texture's mean")
                 uv = np.full((len(f), 3, 2), np.nan)
+            tex_maps.append(TextureMap(nf + np.arange(len(f)), np.asarray(rho, np.float64).copy(), image, uv))
             rho = _textured_rho(rho, image, uv, where, "baseColorTexture", warnings)
             textured.append(mname)
+        nf += len(f)
         vs.append(v)
         fs.append(f + nv)
         nv += len(v)
@@ -561,7 +601,7 @@ def _load_gltf(path: str, warnings: list, scale: float):
         warnings.append(f"{path}: camera not usable ({type(exc).__name__}: {exc}); ignored")
         camera = None
     cat = lambda a, shape, dt: np.concatenate(a).astype(dt) if a else np.zeros(shape, dt)  # noqa: E731
-    extras = {"two_sided": cat(sides, (0,), bool), "textured": list(dict.fromkeys(textured))}
+    extras = {"two_sided": cat(sides, (0,), bool), "textured": list(dict.fromkeys(textured)), "maps": tex_maps}
     return (
         cat(vs, (0, 3), np.float64), cat(fs, (0, 3), np.int64), cat(rhos, (0, 3), np.float64),
         cat(ems, (0, 3), np.float64), cat(objs, (0,), np.int32), list(labels),
@@ -716,4 +756,5 @@ def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool 
         obj=np.ascontiguousarray(obj, np.int32), names=names, valid=valid,
         warnings=warnings, camera=camera, up=want, up_source=source, rotation=rotation,
         two_sided=sided if sided.any() else None, textured=list(extras["textured"]),
+        texture_maps=list(extras["maps"]),
     )

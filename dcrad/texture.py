@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 
-__all__ = ["read_texture", "srgb_to_linear", "uv_means"]
+__all__ = ["read_texture", "srgb_to_linear", "uv_means", "uv_at"]
 
 #: sample points per covered texel, and the bounds of the grid side m (m^2 points per triangle)
 _PER_TEXEL, _MIN_SIDE, _MAX_SIDE = 16, 2, 64
@@ -58,6 +58,25 @@ def read_texture(path: str) -> np.ndarray:
     if not np.isfinite(img).all():
         raise OSError(f"cannot use texture {path}: it holds non-finite values")
     return np.clip(img, 0.0, None).astype(np.float32, copy=False)
+
+
+def uv_at(points: np.ndarray, tri: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """UV of points (m, k, 3) lying in triangles tri (m, 3, 3) with corner UVs uv (m, 3, 2).
+
+    Barycentric coordinates from the 2x2 normal equations of each triangle's plane (points
+    are projected onto it); NaN UVs stay NaN.  Returns (m, k, 2).
+    """
+    a = tri[:, None, 0]
+    e1, e2 = (tri[:, 1] - tri[:, 0])[:, None], (tri[:, 2] - tri[:, 0])[:, None]
+    d = points - a
+    d00, d01, d11 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    d20, d21 = (d * e1).sum(-1), (d * e2).sum(-1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(den > 0, den, 1.0)
+    s = (d11 * d20 - d01 * d21) / den
+    t = (d00 * d21 - d01 * d20) / den
+    u0 = uv[:, None, 0]
+    return u0 + s[..., None] * (uv[:, None, 1] - u0) + t[..., None] * (uv[:, None, 2] - u0)
 
 
 def _grid_centroids(k: np.ndarray, m: np.ndarray) -> np.ndarray:

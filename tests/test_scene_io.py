@@ -572,3 +572,24 @@ def test_mtl_two_sided_flag_marks_its_material_only(tmp_path):
     np.testing.assert_allclose(p.normal[2], -p.normal[0])
     assert p.emission[2].tolist() == [0.0, 0.0, 0.0]
     assert load_scene(write(tmp_path, body, mtl), two_sided=True).two_sided.all()
+
+
+def test_meshed_patches_take_their_own_part_of_the_texture(tmp_path):
+    """Meshed finer than the input, each patch's rho is the texture over its own UV
+    sub-triangle: the left half of a red|blue texture is red, the right half blue, and the
+    patches of an input triangle average (by area) to that triangle's mean."""
+    _png(tmp_path / "t.png", [[[255, 0, 0], [0, 0, 255]]])  # 2 x 1: red | blue
+    mtl = "newmtl tex\nKd 0.9 0.9 0.9\nmap_Kd t.png\n"
+    quad = ("v 0 0 0\nv 2 0 0\nv 2 2 0\nv 0 2 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+            "usemtl tex\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    s = load_scene(write(tmp_path, quad, mtl))
+    p = s.patches(0.2)
+    x = p.centroid[:, 0]
+    inside = np.abs(x - 1.0) > 0.2  # patches clear of the red|blue edge
+    left, right = inside & (x < 1.0), inside & (x > 1.0)
+    np.testing.assert_allclose(p.rho[left], np.broadcast_to([0.9, 0.0, 0.0], (left.sum(), 3)), atol=1e-12)
+    np.testing.assert_allclose(p.rho[right], np.broadcast_to([0.0, 0.0, 0.9], (right.sum(), 3)), atol=1e-12)
+    for t in range(2):
+        own = p.source == t
+        mean = (p.rho[own] * p.area[own, None]).sum(axis=0) / p.area[own].sum()
+        np.testing.assert_allclose(mean, s.rho[t], atol=0.01)
