@@ -29,12 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
+from dcrad import export, render
 from dcrad.accuracy import resolve
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, assemble, check_subscenes, subscene_limit, subscene_specs
+from dcrad.divide import DivideConfig, assemble, check_subscenes, run_divided, subscene_limit, subscene_specs
 from dcrad.energy import rms_error
 from dcrad.errors import DcradError
 from dcrad.pipeline import _is_floor_plan, divided_books, finish_run, prepare, scene_settings
+from dcrad.rays import Tracer
 from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
 from dcrad.v1 import dcrad_pb2 as pb
@@ -89,9 +91,6 @@ class LivePreview:
         return not self._broken and time.monotonic() - self._last >= wait
 
     def _setup(self):
-        from dcrad import render
-        from dcrad.rays import Tracer
-
         p, (w, h) = self.patches, self.size
         mask = None
         if self.scene.camera:
@@ -106,8 +105,6 @@ class LivePreview:
     def render(self, b: np.ndarray, barrier: int) -> None:
         if self._broken:
             return
-        from dcrad import export, render
-
         t0 = time.perf_counter()
         try:
             if self._view is None:
@@ -483,8 +480,6 @@ class JobManager:
                 self.count(barriers=1, **{k: max(0, now[k] - done[k]) for k in now})
                 done.update(now)
                 job.notify()
-
-            from dcrad.divide import run_divided
 
             with ThreadPoolExecutor(max_workers=len(handles)) as ex:
                 run = run_divided(handles, boundaries, self._left(config, resume), divide.batches_per_barrier, ex,

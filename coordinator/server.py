@@ -26,6 +26,7 @@ from dcrad.wire import FileSink, path_chunks
 from .jobs import TERMINAL, JobManager
 from .remote import WorkerPool
 from .rpc import shutdown, start_server, stop_on_signals
+from .web import start_web
 
 log = logging.getLogger("dcrad.coordinator")
 
@@ -132,8 +133,6 @@ async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "
     log.info("coordinator listening on %s:%d, jobs in %s", host, bound, root)
     runner = None
     if web_port is not None:
-        from .web import start_web
-
         try:
             runner, web_url = await start_web(manager, web_host, web_port)
         except OSError as exc:

@@ -224,10 +224,11 @@ def compare(path, subscenes=(1, 2, 4, 8), config: SolverConfig = SolverConfig(),
 
 # == output ========================================================================
 def _chart(result: dict, out_dir: Path) -> None:
-    import matplotlib
+    # matplotlib (an optional heavy import, ~0.5 s) only when a chart is drawn, headless
+    import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), constrained_layout=True)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]

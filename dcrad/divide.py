@@ -26,18 +26,27 @@ import json
 import math
 import time
 from collections.abc import Sequence
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .accuracy import by_accuracy, noise_floor, resolve
-from .boundary import Boundary, RayParcel, TwinBuffer, boundary_mode, coarsen_directions, direction_levels
+from .accuracy import by_accuracy, noise_floor, residual_goal, resolve
+from .boundary import (
+    Boundary,
+    RayParcel,
+    TwinBuffer,
+    boundary_mode,
+    coarsen_directions,
+    direction_levels,
+    make_boundary,
+)
 from .config import DivideConfig, SolverConfig
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .errors import ConfigError
 from .noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
+from .partition import clip, partition
 from .patches import Patches
 from .rays import Tracer
 from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
@@ -46,8 +55,8 @@ from .solve import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
     "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor",
-    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers", "estimate_patches", "solve_divided", "subscene_arrays",
-    "checkpoint_arrays", "build_subscene", "boundaries_to_array", "boundaries_from_array", "run_subscenes",
+    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers", "estimate_patches",
+    "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene", "boundaries_to_array", "boundaries_from_array", "run_subscenes",
 ]
 
 
@@ -59,9 +68,7 @@ class SequentialExecutor(Executor):
     """Runs submitted work at once in the caller's thread (deterministic, for tests)."""
 
     def submit(self, fn, *args, **kwargs):
-        from concurrent.futures import Future
-
-        fut = Future()
+        fut: Future = Future()
         try:
             fut.set_result(fn(*args, **kwargs))
         except BaseException as exc:  # handed back through the future
@@ -649,9 +656,6 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     No Solver and no Embree scene is built (the coordinator, which traces nothing,
     sends these to workers).  Returns (specs, boundaries, parents, partition).
     """
-    from .boundary import make_boundary
-    from .partition import clip, partition
-
     if planes is None and boxes is None:
         check_subscenes(divide.subscenes, len(patches))
     config = resolve(config, len(patches))  # the job's ray density: from its patch count
@@ -680,7 +684,7 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     specs = []
     for cell, (sub, _) in zip(part.cells, pieces):
         touching = [b for b in boundaries if cell.id in (b.side_a, b.side_b)]
-        target = 0.5 * config.tol * emitted / len(part.cells) if divide.adaptive else 0.0
+        target = 0.5 * residual_goal(config) * emitted / len(part.cells) if divide.adaptive else 0.0
         # The job shoots about max_shooters patches per round, as one solver would: each subscene
         # its share by patch count.  With the whole K each, every subscene shot all its patches
         # every batch, at the 32-ray floor (office 2x3, k=16: 10.7M rays -> 6.3M, same error)

@@ -13,6 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+import scenes
+
+from . import export, photometry, render
 from .accuracy import describe, noise_floor_note, resolve, solve_to_accuracy
 from .config import SolverConfig
 from .divide import build_subscenes, run_subscenes
@@ -20,6 +23,7 @@ from .errors import SceneError
 from .patches import Patches
 from .rays import Tracer
 from .report import TIMINGS, RunBooks, run_report, write_json
+from .scene import load_scene
 from .solve import GREY_CHOICE, Stats, stiff_choice
 
 __all__ = ["default_patch_size", "prepare", "write_outputs", "solve_to", "resolve_scene", "divided_books",
@@ -55,8 +59,6 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
     ``office``, ``cornell``, ``furnace`` or ``office:rows=3,cols=4,seed=2`` write the
     generated OBJ/MTL into ``workdir`` and return its path.
     """
-    import scenes
-
     name, _, params = spec.partition(":")
     if Path(spec).exists() or name not in scenes.names():
         return Path(spec)
@@ -80,8 +82,6 @@ def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str |
     ``up`` (None: detect) and ``two_sided``: see scene.load_scene.  ``timings`` (a dict)
     receives ``load_s`` (file to validated triangles) and ``mesh_s`` (triangles to patches).
     """
-    from .scene import load_scene
-
     t0 = time.perf_counter()
     scene = load_scene(path, scale=scale, up=up, two_sided=two_sided)
     t1 = time.perf_counter()
@@ -120,8 +120,6 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     ``patches.triangles`` to reuse (the solve's; at 1.27M patches a second one cost
     4 s and 175 MB); None: build one.
     """
-    from . import export, photometry, render
-
     out.mkdir(parents=True, exist_ok=True)
     written = {}
     exposure = render.scene_exposure(patches)

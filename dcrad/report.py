@@ -17,12 +17,16 @@ import math
 import platform
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .config import TOL, SolverConfig
 from .energy import Ledger, rms_error
 from .patches import Patches
+
+if TYPE_CHECKING:  # solve.py imports this module
+    from .solve import Stiffness
 
 __all__ = ["RunBooks", "TIMINGS", "error_curve", "flipped_normals", "run_report", "write_json"]
 
@@ -57,7 +61,7 @@ class RunBooks:
     #: colour channels tallied (1: a grey scene, copied to the other two)
     channels: int = 3
     #: the ``solve.Stiffness`` that last changed how the run shot (None: never stiff)
-    stiff: object = None
+    stiff: Stiffness | None = None
 
     @classmethod
     def of_solver(cls, solver, timings: dict[str, float] | None = None) -> "RunBooks":
