@@ -593,3 +593,17 @@ def test_meshed_patches_take_their_own_part_of_the_texture(tmp_path):
         own = p.source == t
         mean = (p.rho[own] * p.area[own, None]).sum(axis=0) / p.area[own].sum()
         np.testing.assert_allclose(mean, s.rho[t], atol=0.01)
+
+
+def test_gltf_with_up_override_rotates_geometry_and_camera_together(tmp_path):
+    """--up z on a glTF: vertices and the file's camera go into the Y-up frame by the same
+    exact rotation (x, y, z) -> (x, z, -y); the camera still looks at the same geometry."""
+    path = tmp_path / "h.gltf"
+    path.write_text(json.dumps(hand_gltf([{"name": "grey", "pbrMetallicRoughness": {"baseColorFactor": [0.2] * 4}}])))
+    a, b = load_scene(path), load_scene(path, up="z")
+    assert a.up == "y" and a.up_source.startswith("glTF") and b.up == "z" and b.up_source == "given"
+    rot = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], np.float64)
+    np.testing.assert_array_equal(b.vertices, a.vertices @ rot.T)
+    for k in ("eye", "target", "up"):
+        assert b.camera[k] == pytest.approx(list(rot @ np.array(a.camera[k])))
+    np.testing.assert_allclose(b.to_input_frame(b.vertices), a.vertices, atol=0)
