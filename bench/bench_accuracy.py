@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dcrad.accuracy import solve_to_accuracy  # noqa: E402
+from dcrad.passes import solve_to_accuracy  # noqa: E402
 from dcrad.config import SolverConfig  # noqa: E402
 from dcrad.energy import rms_error  # noqa: E402
 from dcrad.pipeline import prepare, resolve_scene  # noqa: E402

@@ -10,7 +10,7 @@ estimated RMS error over the RMS of the reflected light B - E (noise.py).  While
   ``time_limit`` / ``max_rays``;
 * when its light is all but shot (bias below a quarter of the target) and the
   noise is still above the target, the ray density was too low for this scene:
-  the pass stops (``noise_floor``).  ``solve_to_accuracy`` (single-subscene
+  the pass stops (``noise_floor``).  ``passes.solve_to_accuracy`` (single-subscene
   runs) then runs an independent pass at the density that brings the blend
   under the target and blends the passes by inverse variance, B = sum w_k B_k /
   sum w_k with w_k = 1 / (estimated error of pass k)^2 (the half-solution
@@ -28,11 +28,9 @@ from __future__ import annotations
 import numpy as np
 
 from .config import SolverConfig
-from .energy import ACCOUNTS, MAGNITUDES
-from .noise import finite
 
 __all__ = ["by_accuracy", "resolve", "rays_for", "LEGACY_TOL", "LEGACY_RAYS_PER_POWER", "MAX_PASSES",
-           "noise_floor", "pass_target", "solve_to_accuracy", "describe", "noise_floor_note", "blend"]
+           "noise_floor", "residual_goal", "pass_target", "describe", "noise_floor_note"]
 
 LEGACY_TOL = 0.01  #: residual tolerance when neither tol nor accuracy is set
 LEGACY_RAYS_PER_POWER = 2e5  #: ray density of runs that stop by tol
@@ -75,6 +73,17 @@ def resolve(config: SolverConfig, patches: int | None = None) -> SolverConfig:
                           rays_per_power=config.rays_per_power or LEGACY_RAYS_PER_POWER)
 
 
+def residual_goal(config: SolverConfig) -> float:
+    """The residual a run works towards: ``tol``, or in accuracy mode half the target.
+
+    A subscene's adaptive doIterations stop at its share of it (divide.py); in
+    accuracy mode the run itself stops by the estimate.  The unshot light a
+    residual r leaves is about r of the reflected light (Cornell divided at
+    r = 0.028: bias 2.9%), so half the target leaves the noise most of it.
+    """
+    return config.tol if config.tol > 0 else 0.5 * config.accuracy
+
+
 def noise_floor(estimate, accuracy: float) -> bool:
     """A pass can do no better: its light is nearly all shot and the noise is above target."""
     return estimate.bias_refl <= BIAS_SHARE * accuracy and estimate.noise_refl > accuracy
@@ -86,73 +95,6 @@ def pass_target(so_far: float, accuracy: float) -> float:
     goal = MARGIN * accuracy
     room = 1.0 / goal ** 2 - 1.0 / max(so_far, goal * 1.0001) ** 2
     return 1.0 / np.sqrt(room)
-
-
-def blend(solver, saved: dict, weight_saved: float, weight_now: float) -> None:
-    """Blend ``solver``'s state with ``saved`` (``_save``) in proportion to the weights.
-
-    B, dB, the half-solution differences, the ledger and the return tallies are all
-    linear in the rays' outcomes, so the blend is a solution whose books close.
-    """
-    total = weight_saved + weight_now
-    a, b = weight_saved / total, weight_now / total
-    p, led = solver.patches, solver.ledger
-    p.radiosity = a * saved["radiosity"] + b * p.radiosity
-    p.unshot = a * saved["unshot"] + b * p.unshot
-    solver.noise.diff = a * saved["diff"] + b * solver.noise.diff
-    solver.noise.unshot = a * saved["diff_unshot"] + b * solver.noise.unshot
-    for name in ACCOUNTS + MAGNITUDES:
-        setattr(led, name, a * saved["ledger"][name] + b * getattr(led, name))
-    solver.tallies = a * saved["tallies"] + b * solver.tallies
-    solver.recount()  # |dB| sums are not linear: recount them from the blended table
-    solver.noise.resync(p)
-    solver.pool.invalidate()
-
-
-def _save(solver) -> dict:
-    p = solver.patches
-    return {"radiosity": p.radiosity.copy(), "unshot": p.unshot.copy(), "diff": solver.noise.diff.copy(),
-            "diff_unshot": solver.noise.unshot.copy(), "tallies": solver.tallies.copy(),
-            "ledger": {k: np.array(v, np.float64) for k, v in solver.ledger.as_arrays().items()}}
-
-
-def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=None, should_stop=None):
-    """Run a Solver; in accuracy mode, while a pass ends on its noise floor, run another
-    independent pass and blend (module doc).  Returns the last Solver, holding the blend;
-    its stats, time limit and ray budget count every pass.
-    """
-    from .solve import Solver  # solve imports this module (resolve, noise_floor)
-
-    solver = Solver(patches, config, tracer=tracer)
-    solver.run(on_progress=on_progress, should_stop=should_stop)
-    goal = solver.config.accuracy
-    passes = 1
-    while solver.stats.stopped_by == "noise_floor" and passes < MAX_PASSES:
-        est, cfg, done = solver.estimate(), solver.config, solver.stats
-        saved, weight = _save(solver), 1.0 / max(est.rms, 1e-300) ** 2
-        target = pass_target(est.rms_refl, goal)
-        rpp = cfg.rays_per_power * (est.noise_refl / target) ** 2 * 1.1
-        patches.reset()
-        solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target), tracer=solver.tracer)
-        solver.stats.rays, solver.stats.shots, solver.stats.batches = done.rays, done.shots, done.batches
-        solver.stats.wall_seconds, solver.stats.trace_seconds = done.wall_seconds, done.trace_seconds
-        solver.run(on_progress=on_progress, should_stop=should_stop)
-        now = solver.estimate()
-        blend(solver, saved, weight, 1.0 / max(now.rms, 1e-300) ** 2)
-        passes += 1
-        solver.config = solver.config.replace(accuracy=goal)
-        solver.choices.append(
-            f"accuracy pass {passes}: the passes before ended on their noise floor ({est.rms_refl:.4f} of the "
-            f"reflected light at {cfg.rays_per_power:.3g} rays per emitted power); an independent pass at "
-            f"{rpp:.3g} reached {now.rms_refl:.4f} and the two were blended by inverse variance")
-        reason = solver.stats.stopped_by
-        blended = solver.estimate()
-        if reason in ("accuracy", "noise_floor", "tolerance"):
-            solver.stats.stopped_by = "accuracy" if blended.rms_refl <= goal else "noise_floor"
-        if solver.snapshots:  # the last snapshot's estimate is the blend's (its B stays the last pass's)
-            last = solver.snapshots[-1]
-            last.error_rms, last.error_refl = finite(blended.rms), finite(blended.rms_refl)
-    return solver
 
 
 def describe(config: SolverConfig) -> str:

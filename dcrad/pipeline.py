@@ -16,10 +16,11 @@ import numpy as np
 import scenes
 
 from . import export, photometry, render
-from .accuracy import describe, noise_floor_note, resolve, solve_to_accuracy
+from .accuracy import describe, noise_floor_note, resolve
 from .config import SolverConfig
 from .divide import build_subscenes, run_subscenes
 from .errors import SceneError
+from .passes import solve_to_accuracy
 from .patches import Patches
 from .rays import Tracer
 from .report import TIMINGS, RunBooks, run_report, write_json

@@ -12,11 +12,12 @@ import math
 import numpy as np
 import pytest
 
-from dcrad.accuracy import by_accuracy, rays_for, resolve, solve_to_accuracy
+from dcrad.accuracy import by_accuracy, rays_for, resolve
 from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, solve_divided
 from dcrad.energy import rms_error
 from dcrad.noise import NoiseSums, combine, half_mask, split_power
+from dcrad.passes import solve_to_accuracy
 from dcrad.patches import Patches
 from dcrad.pipeline import prepare
 from dcrad.rays import Tracer

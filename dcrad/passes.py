@@ -1,0 +1,87 @@
+"""Accuracy passes: run a Solver to its target; blend independent passes by inverse variance.
+
+``solve_to_accuracy`` runs one Solver (single-subscene runs).  When a pass ends
+on its noise floor (accuracy.py: its light all but shot, its noise above the
+target), an independent pass runs at the density that brings the blend to the
+target, and the two are blended: B = sum w_k B_k / sum w_k with w_k = 1 /
+(estimated error of pass k)^2.  B, dB, the half-solution differences, the
+ledger and the return tallies are all linear in the rays' outcomes, so the
+blend is a solution whose books close and whose estimate is that of the blend.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .accuracy import MAX_PASSES, pass_target
+from .config import SolverConfig
+from .energy import ACCOUNTS, MAGNITUDES
+from .noise import finite
+from .solve import Solver
+
+__all__ = ["blend", "solve_to_accuracy"]
+
+
+def blend(solver, saved: dict, weight_saved: float, weight_now: float) -> None:
+    """Blend ``solver``'s state with ``saved`` (``_save``) in proportion to the weights.
+
+    B, dB, the half-solution differences, the ledger and the return tallies are all
+    linear in the rays' outcomes, so the blend is a solution whose books close.
+    """
+    total = weight_saved + weight_now
+    a, b = weight_saved / total, weight_now / total
+    p, led = solver.patches, solver.ledger
+    p.radiosity = a * saved["radiosity"] + b * p.radiosity
+    p.unshot = a * saved["unshot"] + b * p.unshot
+    solver.noise.diff = a * saved["diff"] + b * solver.noise.diff
+    solver.noise.unshot = a * saved["diff_unshot"] + b * solver.noise.unshot
+    for name in ACCOUNTS + MAGNITUDES:
+        setattr(led, name, a * saved["ledger"][name] + b * getattr(led, name))
+    solver.tallies = a * saved["tallies"] + b * solver.tallies
+    solver.recount()  # |dB| sums are not linear: recount them from the blended table
+    solver.noise.resync(p)
+    solver.pool.invalidate()
+
+
+def _save(solver) -> dict:
+    p = solver.patches
+    return {"radiosity": p.radiosity.copy(), "unshot": p.unshot.copy(), "diff": solver.noise.diff.copy(),
+            "diff_unshot": solver.noise.unshot.copy(), "tallies": solver.tallies.copy(),
+            "ledger": {k: np.array(v, np.float64) for k, v in solver.ledger.as_arrays().items()}}
+
+
+def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=None, should_stop=None):
+    """Run a Solver; in accuracy mode, while a pass ends on its noise floor, run another
+    independent pass and blend (module doc).  Returns the last Solver, holding the blend;
+    its stats, time limit and ray budget count every pass.
+    """
+    solver = Solver(patches, config, tracer=tracer)
+    solver.run(on_progress=on_progress, should_stop=should_stop)
+    goal = solver.config.accuracy
+    passes = 1
+    while solver.stats.stopped_by == "noise_floor" and passes < MAX_PASSES:
+        est, cfg, done = solver.estimate(), solver.config, solver.stats
+        saved, weight = _save(solver), 1.0 / max(est.rms, 1e-300) ** 2
+        target = pass_target(est.rms_refl, goal)
+        rpp = cfg.rays_per_power * (est.noise_refl / target) ** 2 * 1.1
+        patches.reset()
+        solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target), tracer=solver.tracer)
+        solver.stats.rays, solver.stats.shots, solver.stats.batches = done.rays, done.shots, done.batches
+        solver.stats.wall_seconds, solver.stats.trace_seconds = done.wall_seconds, done.trace_seconds
+        solver.run(on_progress=on_progress, should_stop=should_stop)
+        now = solver.estimate()
+        blend(solver, saved, weight, 1.0 / max(now.rms, 1e-300) ** 2)
+        passes += 1
+        solver.config = solver.config.replace(accuracy=goal)
+        solver.choices.append(
+            f"accuracy pass {passes}: the passes before ended on their noise floor ({est.rms_refl:.4f} of the "
+            f"reflected light at {cfg.rays_per_power:.3g} rays per emitted power); an independent pass at "
+            f"{rpp:.3g} reached {now.rms_refl:.4f} and the two were blended by inverse variance")
+        reason = solver.stats.stopped_by
+        blended = solver.estimate()
+        if reason in ("accuracy", "noise_floor", "tolerance"):
+            solver.stats.stopped_by = "accuracy" if blended.rms_refl <= goal else "noise_floor"
+        if solver.snapshots:  # the last snapshot's estimate is the blend's (its B stays the last pass's)
+            last = solver.snapshots[-1]
+            last.error_rms, last.error_refl = finite(blended.rms), finite(blended.rms_refl)
+    return solver
