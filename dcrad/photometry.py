@@ -99,9 +99,11 @@ def irradiance(patches, tracer: Tracer | None = None, rays: int = GATHER_RAYS, s
     return np.maximum(h, 0.0), gathered
 
 
-def surface_groups(patches) -> tuple[list[str], np.ndarray]:
+def surface_groups(patches, lux: np.ndarray | None = None) -> tuple[list[str], np.ndarray]:
     """(names, group (n,) int): one group per object, per material when objects are unnamed
-    (OBJ's "default"); back sides of two-sided surfaces form their own group "name (back)"."""
+    (OBJ's "default").  Two-sided surfaces: of each triangle's two sides the one with more
+    ``lux`` counts for the object (the room side, whatever the winding), the other for
+    "name (other side)"; without ``lux`` the back side is the other one."""
     labels = []
     for full in patches.names:
         obj, _, mat = full.rpartition("/")
@@ -109,9 +111,14 @@ def surface_groups(patches) -> tuple[list[str], np.ndarray]:
     labels = labels or ["scene"]
     unique = list(dict.fromkeys(labels))
     of_obj = np.array([unique.index(x) for x in labels], np.int64)
-    code = of_obj[np.clip(patches.obj, 0, len(labels) - 1)] + len(unique) * patches.is_back
+    other = patches.is_back.copy()
+    pair = np.flatnonzero(patches.twin >= 0)
+    if lux is not None and len(pair):
+        mine, theirs = lux[pair], lux[patches.twin[pair]]
+        other[pair] = (mine < theirs) | ((mine == theirs) & patches.is_back[pair])
+    code = of_obj[np.clip(patches.obj, 0, len(labels) - 1)] + len(unique) * other
     used, group = np.unique(code, return_inverse=True)
-    names = [unique[c % len(unique)] + (" (back)" if c >= len(unique) else "") for c in used]
+    names = [unique[c % len(unique)] + (" (other side)" if c >= len(unique) else "") for c in used]
     return names, group.reshape(-1)
 
 
@@ -129,7 +136,7 @@ def stats(lux: np.ndarray, area: np.ndarray | None = None) -> dict:
 
 def surface_stats(patches, lux: np.ndarray) -> list[dict]:
     """``photometry.surfaces``: one entry per surface group (see surface_groups)."""
-    names, group = surface_groups(patches)
+    names, group = surface_groups(patches, lux)
     lum = luminance_cd(patches.radiosity)
     out = []
     for g, name in enumerate(names):

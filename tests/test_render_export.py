@@ -444,3 +444,18 @@ def test_tonemap_shoulder_rolls_highlights_off():
     # colour ratios are kept on the shoulder
     c = tonemap(np.array([[2.0, 1.0, 0.5]]), exposure=1.0, srgb=False, shoulder=SHOULDER)[0].astype(float)
     assert c[0] == 255 or abs(c[1] / c[2] - 2.0) < 0.05
+
+
+def test_two_sided_statistics_count_the_lit_side_whatever_the_winding():
+    from dcrad import photometry
+
+    # two floor triangles, the second wound downward; each has a back twin (after the fronts)
+    v = [[0, 0, 0], [0, 0, 1], [1, 0, 1], [1, 0, 0]]
+    f = [[0, 1, 2], [0, 3, 2], [0, 2, 1], [0, 2, 3]]  # up, down, then their reversed twins
+    p = Patches(vertices=v, faces=f, rho=np.full((4, 3), 0.5), emission=np.zeros((4, 3)), source=[0, 1, 0, 1],
+                obj=[0, 0, 0, 0], names=["floor/grey"], twin=[2, 3, 0, 1])
+    assert p.normal[0, 1] > 0 and p.normal[1, 1] < 0 and p.is_back.tolist() == [False, False, True, True]
+    lux = np.array([300.0, 0.0, 0.0, 300.0])  # lit from above: the up-facing side of each
+    entries = {e["name"]: e for e in photometry.surface_stats(p, lux)}
+    assert entries["floor"]["E_min_lux"] == 300.0 and entries["floor"]["uniformity"] == 1.0
+    assert entries["floor (other side)"]["E_max_lux"] == 0.0
