@@ -1,0 +1,169 @@
+"""Past one machine: the barrier loop with k subscenes, timed per subscene, and what k machines would take.
+
+For each k the subscenes run in this process, one after another (``SequentialExecutor``),
+and every subscene's ``iterate`` is timed on its own, in CPU seconds of this process
+(``time.process_time``: the machine is shared, and wall time would count the others' load).  A barrier on k machines takes
+the slowest subscene's iterate (the critical path) plus the exchange; the exchange is
+modelled for a stated link: the coordinator relays every subscene's crossing rays (in
+and out over its one link), with 4 round trips per barrier (iterate, collect, deliver,
+checkpoint).  Predicted time on k machines = sum over barriers of (critical path +
+exchange); speed-up = the one-process solve's time / that; efficiency = speed-up / k.
+Partition, clipping and loading are left out of the prediction (printed separately).
+
+Prints figures; asserts nothing.  Run, e.g. (the issue-14 figures in bench/RESULTS.md)::
+
+    .venv/bin/python bench/bench_scaling.py --rows 20 --cols 20 --patch-size 0.4 --ks 1,2,4,8,16,32,64
+
+``--service`` also runs ``dcrad solve --workers 0`` and ``--workers 2`` with the same
+settings, whole process, and prints the measured 2-worker speed-up beside the prediction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import scenes
+from dcrad.config import DivideConfig, SolverConfig
+from dcrad.divide import SequentialExecutor, run_divided, subscene_specs
+from dcrad.pipeline import prepare
+from dcrad.solve import Solver
+
+
+def on_machines(per: np.ndarray, m: int, first: np.ndarray) -> np.ndarray:
+    """(barriers,) s: k subscenes on m machines, assigned at each barrier by the work each did at
+    the previous one (longest first, to the least loaded machine; ``first`` before any barrier)."""
+    out = np.zeros(per.shape[1])
+    guess = np.asarray(first, np.float64)
+    for b in range(per.shape[1]):
+        load, est = np.zeros(m), np.zeros(m)
+        for i in np.argsort(-guess, kind="stable"):
+            j = int(np.argmin(est))
+            est[j] += guess[i]
+            load[j] += per[i, b]
+        out[b] = load.max()
+        guess = per[:, b]
+    return out
+
+
+class Timed:
+    """A subscene handle that times its own iterate and counts the bytes it hands over."""
+
+    def __init__(self, sub):
+        self.sub, self.cell, self.mode = sub, sub.cell, sub.mode
+        self.seconds: list[float] = []  # per barrier
+        self.sent: list[int] = []  # bytes collected per barrier
+        self.received: list[int] = []  # bytes delivered per barrier
+
+    def iterate(self, n, plan=None):
+        t0 = time.process_time()
+        rays = self.sub.iterate(n, plan)
+        self.seconds.append(time.process_time() - t0)
+        return rays
+
+    def collect(self):
+        out = self.sub.collect()
+        self.sent.append(out.nbytes())
+        return out
+
+    def deliver(self, buffer):
+        self.received.append(buffer.nbytes())
+        self.sub.deliver(buffer)
+
+    def state(self):
+        return self.sub.state()
+
+    def radiosity(self):
+        return self.sub.radiosity()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rows", type=int, default=20)
+    ap.add_argument("--cols", type=int, default=20)
+    ap.add_argument("--patch-size", type=float, default=0.4)
+    ap.add_argument("--ks", default="1,2,4,8,16,32,64")
+    ap.add_argument("--tol", type=float, default=0.05, help="residual to stop at (the same for every k)")
+    ap.add_argument("--rays-per-power", type=float, default=2e5)
+    ap.add_argument("--max-rays", type=int, default=0, help="ray budget per run (0: none)")
+    ap.add_argument("--min-rays", type=int, default=SolverConfig().min_rays, help="fewest rays per patch shot")
+    ap.add_argument("--direct", action="store_true",
+                    help="k=1 gathers the direct light (divided runs shoot it; off by default: like for like)")
+    ap.add_argument("--gbps", type=float, default=1.0, help="link bandwidth, Gbit/s")
+    ap.add_argument("--latency-ms", type=float, default=0.5, help="one round trip, ms")
+    ap.add_argument("--service", action="store_true", help="also measure dcrad solve --workers 0 / 2")
+    args = ap.parse_args(argv)
+
+    folder = Path(tempfile.mkdtemp())
+    path = scenes.write_builtin("office", folder, rows=args.rows, cols=args.cols)
+    cfg = SolverConfig(tol=args.tol, rays_per_power=args.rays_per_power, max_rays=args.max_rays, seed=1,
+                       min_rays=args.min_rays, direct=args.direct)
+    bw = args.gbps * 1e9 / 8  # bytes/s
+    rtt = args.latency_ms * 1e-3
+    print(f"office {args.rows}x{args.cols}, patch size {args.patch_size} m; tol {args.tol}, "
+          f"{args.rays_per_power:.3g} rays per emitted power, ray budget {args.max_rays or 'none'}, "
+          f"min rays {args.min_rays}, direct light {'gathered at k=1' if args.direct else 'shot'}; "
+          f"link {args.gbps:g} Gbit/s, {args.latency_ms:g} ms round trip, coordinator relays")
+    _, p, _ = prepare(path, args.patch_size)
+    print(f"{len(p)} patches", flush=True)
+    t0 = time.process_time()
+    one = Solver(p, cfg)
+    one.run()
+    t1 = time.process_time() - t0
+    rays1 = one.stats.rays
+    print(f"k=1 (one process): {t1:.1f} CPU s, {rays1:,d} rays, residual {one.residual():.3g}", flush=True)
+    head = (f"{'k':>3} {'setup s':>7} {'barriers':>8} {'rays/k1':>7} {'crit s':>7} {'sum s':>7} {'balance':>7} "
+            f"{'MB/barrier':>10} {'xchg s':>7} {'pred s':>7} {'speed-up':>8} {'eff':>5} {'on 2':>6}")
+    print(head)
+    for k in [int(x) for x in args.ks.split(",") if int(x) > 1]:
+        _, q, _ = prepare(path, args.patch_size)
+        t0 = time.perf_counter()
+        specs, boundaries, _, _ = subscene_specs(q, cfg, DivideConfig(subscenes=k))
+        handles = [Timed(s.build()) for s in specs]
+        setup = time.perf_counter() - t0
+        run = run_divided(handles, boundaries, cfg, DivideConfig().batches_per_barrier, SequentialExecutor())
+        per = np.array([h.seconds for h in handles])  # (k, barriers)
+        moved = np.array([h.sent for h in handles]).sum(axis=0) if run.barriers else np.zeros(1)
+        crit = per.max(axis=0)
+        xchg = 4 * rtt + 2 * moved / bw
+        pred = float((crit + xchg).sum())
+        balance = float(per.sum(axis=1).max() / per.sum(axis=1).mean())  # slowest subscene / mean
+        speed = t1 / pred
+        two = t1 / float((on_machines(per, 2, [len(h.sub.patches) for h in handles]) + xchg).sum())
+        print(f"{k:3d} {setup:7.1f} {run.barriers:8d} {run.snapshots[-1].rays / rays1:7.2f} "
+              f"{crit.mean():7.3f} {per.sum():7.1f} {balance:7.2f} {moved.mean() / 1e6:10.2f} "
+              f"{xchg.sum():7.2f} {pred:7.2f} {speed:8.2f} {speed / k:5.0%} {two:6.2f}", flush=True)
+        del handles, specs
+    print("crit s: mean per-barrier critical path (slowest subscene); sum s: all subscenes' iterate time; "
+          "balance: slowest subscene's total / the mean; MB/barrier: crossing rays handed over; on 2: "
+          "predicted speed-up of these k subscenes on 2 machines, assigned at each barrier by the "
+          "previous barrier's work (over-decomposition)")
+    if args.service:
+        common = [f"office:rows={args.rows},cols={args.cols}", "--patch-size", str(args.patch_size),
+                  "--tol", str(args.tol), "--rays-per-power", str(args.rays_per_power), "--width", "64",
+                  "--height", "48", "--min-rays", str(args.min_rays)]
+        if not args.direct:
+            common += ["--no-direct"]
+        if args.max_rays:
+            common += ["--max-rays", str(args.max_rays)]
+        times = {}
+        for w in (0, 2):
+            t0 = time.perf_counter()
+            r = subprocess.run([sys.executable, "-m", "dcrad.cli", "solve", *common, "--workers", str(w),
+                                "--out", str(folder / f"w{w}")], capture_output=True, text=True)
+            times[w] = time.perf_counter() - t0
+            if r.returncode:
+                print(f"--workers {w} failed: {r.stderr.strip().splitlines()[-1:]}")
+        print(f"measured, whole process: --workers 0 {times[0]:.1f} s, --workers 2 {times[2]:.1f} s: "
+              f"2-worker speed-up {times[0] / times[2]:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
