@@ -47,7 +47,10 @@ from .rays import Tracer
 from .sampling import lattice, triangle_points
 
 __all__ = ["DirectTally", "gather_direct", "shadow_rays_for", "noise_against_shooting", "landing_rays",
-           "rescale_to_landed"]
+           "rescale_to_landed", "merge", "PILOT_SHARE"]
+
+#: share of the receivers (at random) gathered first to decide whether gathering beats shooting
+PILOT_SHARE = 0.125
 
 
 def shadow_rays_for(rays_per_power: float, patches: int) -> int:
@@ -122,11 +125,13 @@ def _importance(xc: np.ndarray, nx: np.ndarray, centre, spread, normal, phi_g) -
 
 
 def gather_direct(patches: Patches, tracer: Tracer, emitters: np.ndarray, power: np.ndarray, shadow_rays: int,
-                  rng: np.random.Generator, offset: float, batch_rays: int = 262144) -> DirectTally:
+                  rng: np.random.Generator, offset: float, batch_rays: int = 262144,
+                  receivers: np.ndarray | None = None) -> DirectTally:
     """Gather the direct light of ``emitters`` (e,) shooting ``power`` (e,3) W onto every patch with rho > 0.
 
     shadow_rays: S per receiver (even: two halves of S/2); offset: m the ends of a
     shadow ray are lifted off their surfaces.  Traces in chunks of ``batch_rays``.
+    receivers: the patches to gather for (sorted, distinct; default every patch with rho > 0).
     Each sample picks a light group (an emitting object) with the receiver's own
     probabilities (``_importance``: lights in other rooms get few samples), then an
     emitter patch of the group in proportion to power, then a point on it; the
@@ -134,7 +139,8 @@ def gather_direct(patches: Patches, tracer: Tracer, emitters: np.ndarray, power:
     """
     total = power.sum(axis=1)
     phi = float(total.sum())
-    receivers = np.flatnonzero(patches.rho.any(axis=1))
+    if receivers is None:
+        receivers = np.flatnonzero(patches.rho.any(axis=1))
     if phi <= 0 or len(receivers) == 0:
         z = np.zeros(3)
         return DirectTally(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3)), power.sum(axis=0), z.copy(),
@@ -259,3 +265,16 @@ def rescale_to_landed(gathered: DirectTally, shot, patches: Patches) -> DirectTa
     return DirectTally(received, gathered.hit, received_a, shot.escaped, shot.back_faces, shot.back_by_obj,
                        gathered.portal, gathered.portal_prim, gathered.portal_t, magnitude.sum(axis=0),
                        (magnitude * patches.rho[gathered.hit]).sum(axis=0), shot.lost, gathered.rays)
+
+
+def merge(a: DirectTally, b: DirectTally, patches: Patches) -> DirectTally:
+    """One tally of two gathers over disjoint receivers (``a.escaped`` must be recomputed
+    by ``rescale_to_landed``, which replaces it with the emitters' rays' own)."""
+    hit = np.concatenate([a.hit, b.hit])
+    order = np.argsort(hit, kind="stable")
+    received = np.concatenate([a.received, b.received])[order]
+    magnitude = np.abs(received)
+    return DirectTally(received, hit[order], np.concatenate([a.received_a, b.received_a])[order],
+                       a.escaped + b.escaped, a.back_faces + b.back_faces, a.back_by_obj + b.back_by_obj,
+                       a.portal, a.portal_prim, a.portal_t, magnitude.sum(axis=0),
+                       (magnitude * patches.rho[hit[order]]).sum(axis=0), a.lost + b.lost, a.rays + b.rays)

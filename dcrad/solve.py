@@ -59,7 +59,8 @@ from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
 from .report import escaped_light, flipped_normals
-from .direct import gather_direct, landing_rays, noise_against_shooting, rescale_to_landed, shadow_rays_for
+from .direct import (PILOT_SHARE, gather_direct, landing_rays, merge, noise_against_shooting, rescale_to_landed,
+                     shadow_rays_for)
 from .shoot import deposit, patch_rays, ray_offset, trace
 from .shooters import ShooterPool, pool_size, spatial_order
 from .snapshots import SnapshotStore
@@ -344,16 +345,26 @@ class Solver:
         amounts = p.unshot[emitters].copy()
         power = amounts * p.area[emitters, None]
         shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
+        # a pilot on a random share of the receivers decides whether gathering beats shooting
+        receivers = np.flatnonzero(p.rho.any(axis=1))
+        size = min(len(receivers), max(64, int(PILOT_SHARE * len(receivers))))
+        pilot = np.sort(self.rng.choice(receivers, size, replace=False))
         t0 = time.perf_counter()
-        gathered = gather_direct(p, self.tracer, emitters, power, shadow, self.rng, ray_offset(p), cfg.batch_rays)
+        off = ray_offset(p)
+        gathered = gather_direct(p, self.tracer, emitters, power, shadow, self.rng, off, cfg.batch_rays, pilot)
         self.stats.trace_seconds += time.perf_counter() - t0
         quiet, loud = noise_against_shooting(p, gathered, power, self.power_per_ray)
         ratio = math.sqrt(quiet / loud) if loud > 0 else math.inf
         if not ratio < 1.0:
             self.choices.append(f"direct light shot, not gathered: {shadow} shadow rays per patch gave "
-                                f"{ratio:.2f}x the noise shooting the emitters would (emitters next to their "
-                                f"receivers); the {gathered.rays} shadow rays are counted")
+                                f"{ratio:.2f}x the noise shooting the emitters would, on a pilot of "
+                                f"{len(pilot)} patches (its {gathered.rays} shadow rays are counted)")
             return self.counted(0, gathered.rays)
+        t0 = time.perf_counter()
+        rest = np.setdiff1d(receivers, pilot, assume_unique=True)
+        gathered = merge(gathered, gather_direct(p, self.tracer, emitters, power, shadow, self.rng, off,
+                                                 cfg.batch_rays, rest), p)
+        self.stats.trace_seconds += time.perf_counter() - t0
         # the emitters' own rays: how much of their power lands (the books), not where
         total = power.sum(axis=1)
         n_land = landing_rays(shadow, len(gathered.hit), len(emitters), cfg.batch_rays)
