@@ -6,9 +6,11 @@ error, and the raw figure is printed too), then one run per accuracy target with
 and without the direct-light gather (``--no-direct``: the emitters are shot
 with rays).  Prints a markdown table: rays, seconds, how the run stopped, the
 estimate (over RMS of B - E), the measured error over RMS(B - E) and over RMS(B),
-and estimate / measured.
+and estimate / measured, and the measured error times sqrt(rays / 1e6) (lower: more accuracy
+per ray).  ``--fixed 4e6`` runs converged solves at fixed densities instead of targets.
 
     .venv/bin/python bench/bench_accuracy.py --scenes cornell,office --accuracies 0.1,0.05,0.03,0.02
+    .venv/bin/python bench/bench_accuracy.py --scenes cornell --fixed 4e6 --cache /tmp/refs
 """
 
 from __future__ import annotations
@@ -61,12 +63,16 @@ def main() -> None:
     ap.add_argument("--cache", default="", help="folder to keep reference solutions in between runs")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--gather", default="on,off", help="direct-light gather: on, off or on,off")
+    ap.add_argument("--fixed", default="", help="instead of accuracy targets: converged runs (tol 1e-3) at these "
+                    "rays per power, e.g. 4e6 (error per ray at a fixed density)")
+    ap.add_argument("--shadow-rays", type=int, default=0, help="shadow rays per patch (0: automatic)")
     args = ap.parse_args()
     accuracies = [float(a) for a in args.accuracies.split(",")]
+    fixed = [float(a) for a in args.fixed.split(",") if a.strip()]
     gathers = [g.strip() == "on" for g in args.gather.split(",")]
-    print("| scene | patches | gather | target | rays (M) | s | stopped by | estimate refl | measured refl | "
-          "measured norm | est/meas |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print(f"| scene | patches | gather | {'rays per power' if args.fixed else 'target'} | rays (M) | s | stopped by | "
+          "estimate refl | measured refl | measured norm | est/meas | refl x sqrt(Mrays) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenes.split(","):
             path = resolve_scene(name, Path(tmp) / name)
@@ -77,9 +83,11 @@ def main() -> None:
             area = patches.area
             rms_b, rms_r = rms(ref, area), rms(ref - patches.emission, area)
             for gather in gathers:
-                for acc in accuracies:
+                for acc in fixed or accuracies:
                     patches.reset()
-                    cfg = SolverConfig(seed=args.seed, accuracy=acc, direct=gather)
+                    cfg = (SolverConfig(seed=args.seed, tol=1e-3, rays_per_power=acc, direct=gather,
+                                        shadow_rays=args.shadow_rays) if fixed else
+                           SolverConfig(seed=args.seed, accuracy=acc, direct=gather, shadow_rays=args.shadow_rays))
                     t = time.perf_counter()
                     s = solve_to_accuracy(patches, cfg, tracer)
                     dt = time.perf_counter() - t
@@ -89,7 +97,8 @@ def main() -> None:
                     print(f"| {name} | {len(patches)} | {'on' if gather else 'off'} | {acc:g} | "
                           f"{s.stats.rays / 1e6:.2f} | {dt:.1f} | {s.stats.stopped_by} | {est.rms_refl:.4f} | "
                           f"{meas / rms_r:.4f} (raw {raw / rms_r:.4f}) | {meas / rms_b:.4f} | "
-                          f"{est.rms / meas:.2f} |", flush=True)
+                          f"{est.rms_refl / (meas / rms_r):.2f} | {meas / rms_r * math.sqrt(s.stats.rays / 1e6):.4f} |",
+                          flush=True)
 
 
 if __name__ == "__main__":
