@@ -37,8 +37,8 @@ import numpy as np
 __all__ = ["Estimate", "NoiseTally", "NoiseSums", "combine", "half_mask", "split_power", "METHOD",
            "bias_ambient", "finite"]
 
-METHOD = ("two independent half-solutions (noise, includes propagated noise) + unshot light spread "
-          "as ambient irradiance (bias)")
+METHOD = ("two independent half-solutions (noise, propagated noise included) + the unshot light as a "
+          "relative shortfall of the reflected light so far (bias)")
 
 
 def half_mask(counts: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
