@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .accuracy import residual_goal, resolve
 from .config import SolverConfig
 from .divide import DivideConfig, solve_divided
 from .energy import rms_error
@@ -164,12 +165,13 @@ def compare(path, subscenes=(1, 2, 4, 8), config: SolverConfig = SolverConfig(),
         raise ConfigError(f"ref_rays_factor={ref_rays_factor} must be > 0")
     scene, patches, size = prepare(path, patch_size)
     area, n = patches.area.copy(), len(patches)
+    config = resolve(config, n)  # the ray density and stop rule of the runs (accuracy.py)
     ref_info: dict[str, object] = {"patches": n}
     if reference is not None:
         ref = _load_reference(reference, n, area, size)
         ref_info |= {"source": "file", "file": str(reference)}
     else:
-        tol = ref_tol if ref_tol is not None else min(config.tol / 10.0, 1e-3)
+        tol = ref_tol if ref_tol is not None else min(residual_goal(config) / 10.0, 1e-3)
         rcfg = config.replace(tol=tol, rays_per_power=config.rays_per_power * ref_rays_factor,
                               seed=config.seed + REF_SEED_OFFSET, time_limit=0.0, max_rays=0)
         solver = Solver(patches, rcfg)
