@@ -461,3 +461,25 @@ def test_transfer_rejects_bad_entries():
         transfer(single(0, 10, 0, bn=16), bs)  # and 16 bins
     assert transfer({}, bs).keys() == {0, 1, 2, 3}
     assert all(len(b) == 0 for b in transfer({0: TwinBuffer(4, 4)}, bs).values())
+
+
+def test_transfer_rays_routes_every_ray_once_to_the_far_side():
+    """Exact forwarding: each recorded ray goes, unchanged, to the cell across its boundary;
+    a million rays of random power pass the power check (summed in another order), and a
+    parcel naming a boundary its cell does not touch is refused."""
+    from dcrad.boundary import RayParcel, transfer_rays
+
+    rng = np.random.default_rng(1)
+    bs = [make_boundary(0, 0, 1.0, (0, 0), (1, 1), 0, 1, 0.1, 4), make_boundary(1, 2, 1.0, (0, 0), (1, 1), 1, 2, 0.1, 4)]
+    m = 1_000_000
+    bid = rng.integers(0, 2, m)
+    parcel = RayParcel(bid, rng.random((m, 3)), rng.normal(size=(m, 3)), rng.random((m, 3)) * rng.choice([-1, 1], (m, 1)))
+    out = transfer_rays({1: parcel}, bs)  # cell 1 touches both: boundary 0 to cell 0, 1 to cell 2
+    assert len(out[0]) == int((bid == 0).sum()) and len(out[2]) == int((bid == 1).sum()) and len(out[1]) == 0
+    order = np.argsort(out[0].power[:, 0])
+    mine = np.flatnonzero(bid == 0)
+    assert np.array_equal(out[0].power[order], parcel.power[mine][np.argsort(parcel.power[mine, 0])])
+    with pytest.raises(ExchangeError, match="does not touch"):
+        transfer_rays({0: RayParcel([1], [[0, 0, 1.0]], [[0, 0, 1.0]], [[1.0, 1, 1]])}, bs)
+    with pytest.raises(ExchangeError, match="unknown boundary"):
+        transfer_rays({0: RayParcel([7], [[0, 0, 1.0]], [[0, 0, 1.0]], [[1.0, 1, 1]])}, bs)
