@@ -36,17 +36,20 @@ BENCH := \
 	"bench_solver.py" \
 	"bench_divide.py --sizes 2x3 --ks 1,2,4 --targets 0.2" \
 	"bench_service.py" \
-	"bench_binning.py --quick" \
+	"bench_binning.py --short" \
 	"bench_stiff.py --rhos 0.9,0.99 --time-limit 20" \
 	"bench_scale.py --rooms 3,8 --max-rays 2000000 --no-outputs" \
 	"bench_scaling.py --rows 6 --cols 6 --ks 1,2,4,8" \
 	"bench_checkpoint.py --rows 4 --cols 4" \
 	"bench_accuracy.py --scenes cornell --accuracies 0.1,0.05" \
-	"bench_real_scenes.py 50000"
+	"bench_real_scenes.py 50000" \
+	"bench_upload.py --mb 50" \
+	"bench_open_floor.py --cells 20 --ks 2,8 --seeds 1 --rays-per-power 2e5"
 bench: install
 	@for f in bench/bench_*.py; do case ' $(BENCH) ' in *'"'$$(basename $$f)* ) ;; \
 	  *) echo "make bench: $$f is not in BENCH (Makefile)"; exit 1;; esac; done
-	@for b in $(BENCH); do echo "== bench/$$b"; $(BIN)/python bench/$$b || exit 1; done
+	@for b in $(BENCH); do echo "== bench/$$b"; t=$$(date +%s); $(BIN)/python bench/$$b || exit 1; \
+	  echo "== $$(( $$(date +%s) - t )) s"; done
 
 clean:
 	rm -rf out build dist *.egg-info test-artifacts
