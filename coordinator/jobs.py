@@ -48,6 +48,8 @@ from .store import CheckpointWriter, JobRecord, JobStore, Resume
 log = logging.getLogger("dcrad.coordinator")
 
 TERMINAL = {"done", "failed", "cancelled"}
+#: s a job resumed after a coordinator restart waits for a first worker
+RESUME_WAIT = 3600.0
 STATES = ("queued", "running", "done", "failed", "cancelled")
 
 
@@ -434,9 +436,11 @@ class JobManager:
                                        spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
                                        timings=phases)
         timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
-        live = self.pool.wait_for(1, self.worker_wait)
+        # a job resumed after a restart waits longer: its workers may come back after the coordinator
+        wait = self.worker_wait if job.resume is None else max(self.worker_wait, RESUME_WAIT)
+        live = self.pool.wait_for(1, wait)
         if live == 0:
-            raise NoWorkers(f"no worker registered within {self.worker_wait:.0f} s")
+            raise NoWorkers(f"no worker registered within {wait:.0f} s")
         divide = self._divide(spec, min(live, subscene_limit(len(patches))))  # a small scene: fewer
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
         t0 = time.perf_counter()
