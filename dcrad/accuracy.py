@@ -35,9 +35,10 @@ __all__ = ["by_accuracy", "resolve", "rays_for", "LEGACY_TOL", "LEGACY_RAYS_PER_
 LEGACY_TOL = 0.01  #: residual tolerance when neither tol nor accuracy is set
 LEGACY_RAYS_PER_POWER = 2e5  #: ray density of runs that stop by tol
 #: rays_per_power = RAYS_PER_PATCH * patches / accuracy^2.  Measured noise^2 * rays_per_power
-#: / patches: Cornell 0.32 (shooting) and 0.35 (direct gather), office 0.16; with some margin
-#: so that a first pass usually meets its target (bench/RESULTS.md)
-RAYS_PER_PATCH = 0.4
+#: / patches on converged runs: Cornell 0.32 (shooting), 0.22 (direct gather), office 0.16.
+#: Rays to reach 3%: 0.4 -> Cornell 11.9M, office 21.5M; 0.25 -> 8.3M, 13.8M; 0.18 -> 13.7M
+#: (Cornell needed a second pass), 10.7M (bench/RESULTS.md)
+RAYS_PER_PATCH = 0.25
 MAX_PASSES = 3  #: passes of one single-subscene run at most (the first one included)
 #: a pass is done when its bias is below this share of the target (the rest is noise)
 BIAS_SHARE = 0.25
