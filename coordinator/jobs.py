@@ -43,7 +43,7 @@ from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import estimate_to_pb, ledger_to_pb
 
 from .remote import NoWorkers, RemoteSubscene, WorkerPool
-from .store import CheckpointWriter, JobRecord, JobStore, Resume
+from .store import CheckpointWriter, JobRecord, JobStore, Resume, StoredPreview
 
 log = logging.getLogger("dcrad.coordinator")
 
@@ -227,7 +227,7 @@ class Job:
     updates: list = field(default_factory=list)  #: pb.Progress per barrier
     cancel: threading.Event = field(default_factory=threading.Event)
     report: dict | None = None
-    preview: LivePreview | None = None
+    preview: LivePreview | StoredPreview | None = None  #: StoredPreview: an ended job, after a restart
     curve: ErrorCurve = field(default_factory=ErrorCurve)
     divide: dict | None = None  #: the DivideConfig it runs with (kept in the record, for a resume)
     resume: Resume | None = None  #: checkpoints to resume from, after a coordinator restart
@@ -349,6 +349,8 @@ class JobManager:
                 if measured:
                     job.curve.measured = [tuple(m) for m in measured["points"]]
                     job.curve.label = measured.get("label", "")
+                barriers = int(((job.report or {}).get("divided") or {}).get("barriers", 0) or 0)
+                job.preview = StoredPreview.load(job.root / "live" / "preview-live.png", barriers)
                 closure = float(((job.report or {}).get("ledger") or {}).get("closure", 0.0))
                 job.updates.append(pb.Progress(job=job.summary(),
                                                ledger=pb.Ledger(residual=job.residual, closure=closure)))

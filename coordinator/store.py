@@ -48,7 +48,7 @@ from dcrad.v1 import dcrad_pb2 as pb
 
 log = logging.getLogger("dcrad.coordinator")
 
-__all__ = ["JobStore", "JobRecord", "Resume", "CheckpointWriter", "atomic_write", "encode_delta",
+__all__ = ["JobStore", "JobRecord", "Resume", "StoredPreview", "CheckpointWriter", "atomic_write", "encode_delta",
            "decode_delta", "ROW_ARRAYS"]
 
 RECORD = "job.json"
@@ -201,6 +201,28 @@ class JobStore:
         except Exception as exc:  # any damage: a warning and a fresh start, never a crash
             log.warning("job %s: checkpoints in %s are unreadable (%s: %s); the job starts over",
                         job_id, folder, type(exc).__name__, exc)
+            return None
+
+
+@dataclass
+class StoredPreview:
+    """The last live preview of an ended job, read back from disk after a restart: what
+    the status page reads of a ``LivePreview`` (``current``: version, barrier, png bytes)."""
+
+    current: tuple[int, int, bytes]
+
+    @property
+    def barrier(self) -> int:
+        return self.current[1]
+
+    def close(self) -> None:
+        pass
+
+    @classmethod
+    def load(cls, path: Path, barrier: int) -> "StoredPreview | None":
+        try:
+            return cls((1, barrier, Path(path).read_bytes())) if Path(path).is_file() else None
+        except OSError:
             return None
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+import urllib.request
 
 import grpc
 import numpy as np
@@ -78,6 +79,8 @@ def test_coordinator_sigkill_mid_job_resumes_bit_identical(tmp_path):
         assert listed[ref.job_id].state == "done" and job.job_id in listed
         again = fetch(cluster.address, ref.job_id)  # the finished job survived the restart
         assert bytes(again["radiosity.npz"]) == bytes(ref_files["radiosity.npz"])
+        with urllib.request.urlopen(f"{cluster.web_url}/jobs/{ref.job_id}/preview.png", timeout=30) as r:
+            assert r.status == 200 and r.read(8) == b"\x89PNG\r\n\x1a\n"  # its page keeps its preview
 
         final = watch(cluster.address, job.job_id)[-1]  # the workers re-register; it resumes
         assert final.job.state == "done", final.job.error
