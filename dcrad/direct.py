@@ -47,10 +47,13 @@ from .rays import Tracer
 from .sampling import lattice, triangle_points
 
 __all__ = ["DirectTally", "gather_direct", "shadow_rays_for", "noise_against_shooting", "landing_rays",
-           "rescale_to_landed", "merge", "PILOT_SHARE"]
+           "rescale_to_landed", "merge", "PILOT_SHARE", "GATHER_MARGIN"]
 
 #: share of the receivers (at random) gathered first to decide whether gathering beats shooting
 PILOT_SHARE = 0.125
+#: the pilot's noise must be below this share of shooting's: a gather's noise is heavy-tailed
+#: next to an emitter (1/r^2 at a shared edge), and a pilot of few patches sees too little of it
+GATHER_MARGIN = 0.7
 
 
 def shadow_rays_for(rays_per_power: float, patches: int) -> int:

@@ -19,7 +19,10 @@ from .energy import ACCOUNTS, MAGNITUDES
 from .noise import finite
 from .solve import Solver
 
-__all__ = ["blend", "solve_to_accuracy"]
+__all__ = ["blend", "solve_to_accuracy", "PASS_SEED"]
+
+#: each further pass seeds its random streams this much after the pass before
+PASS_SEED = 7919
 
 
 def blend(solver, saved: dict, weight_saved: float, weight_now: float) -> None:
@@ -62,17 +65,25 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
     while solver.stats.stopped_by == "noise_floor" and passes < MAX_PASSES:
         est, cfg, done = solver.estimate(), solver.config, solver.stats
         saved, weight = _save(solver), 1.0 / max(est.rms, 1e-300) ** 2
+        earlier = [c if c.startswith("pass ") else f"pass {passes}: {c}" for c in solver.choices
+                   if c.startswith(("direct light", "pass "))]
         target = pass_target(est.rms_refl, goal)
-        rpp = cfg.rays_per_power * (est.noise_refl / target) ** 2 * 1.1
+        # never sparser than the pass before: at low densities the 32-ray floors and the gather's
+        # tails make a pass's noise hard to predict
+        rpp = cfg.rays_per_power * max((est.noise_refl / target) ** 2 * 1.1, 1.0)
         patches.reset()
-        solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target), tracer=solver.tracer)
+        # its own random streams: a pass with the same seed would repeat the first one's rays
+        solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target, seed=cfg.seed + PASS_SEED),
+                        tracer=solver.tracer)
         solver.stats.rays, solver.stats.shots, solver.stats.batches = done.rays, done.shots, done.batches
         solver.stats.wall_seconds, solver.stats.trace_seconds = done.wall_seconds, done.trace_seconds
         solver.run(on_progress=on_progress, should_stop=should_stop)
         now = solver.estimate()
         blend(solver, saved, weight, 1.0 / max(now.rms, 1e-300) ** 2)
         passes += 1
-        solver.config = solver.config.replace(accuracy=goal)
+        solver.config = solver.config.replace(accuracy=goal, seed=config.seed)
+        solver.choices = earlier + [c if not c.startswith("direct light") else f"pass {passes}: {c}"
+                                    for c in solver.choices]
         solver.choices.append(
             f"accuracy pass {passes}: the passes before ended on their noise floor ({est.rms_refl:.4f} of the "
             f"reflected light at {cfg.rays_per_power:.3g} rays per emitted power); an independent pass at "

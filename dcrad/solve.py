@@ -59,7 +59,7 @@ from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
 from .report import escaped_light, flipped_normals
-from .direct import (PILOT_SHARE, gather_direct, landing_rays, merge, noise_against_shooting, rescale_to_landed,
+from .direct import (GATHER_MARGIN, PILOT_SHARE, gather_direct, landing_rays, merge, noise_against_shooting, rescale_to_landed,
                      shadow_rays_for)
 from .shoot import deposit, patch_rays, ray_offset, trace
 from .shooters import ShooterPool, pool_size, spatial_order
@@ -154,6 +154,8 @@ class Solver:
         self._since_recount = 0
         #: the two half-solutions' difference, for the error estimate (noise.py)
         self.noise = NoiseTally(patches)
+        #: the direct-light gather was tried (it runs once, at the start of ``run``)
+        self.gathered = False
         self._t0 = time.perf_counter()
 
     # == one Embree call ===========================================================
@@ -339,6 +341,7 @@ class Solver:
         """
         p = self.patches
         cfg = self.config
+        self.gathered = True
         emitters = np.flatnonzero(p.emission.any(axis=1) & p.unshot.any(axis=1))
         if len(emitters) == 0:
             return 0
@@ -355,7 +358,7 @@ class Solver:
         self.stats.trace_seconds += time.perf_counter() - t0
         quiet, loud = noise_against_shooting(p, gathered, power, self.power_per_ray)
         ratio = math.sqrt(quiet / loud) if loud > 0 else math.inf
-        if not ratio < 1.0:
+        if not ratio < GATHER_MARGIN:
             self.choices.append(f"direct light shot, not gathered: {shadow} shadow rays per patch gave "
                                 f"{ratio:.2f}x the noise shooting the emitters would, on a pilot of "
                                 f"{len(pilot)} patches (its {gathered.rays} shadow rays are counted)")
@@ -446,7 +449,7 @@ class Solver:
         self.pool.invalidate()  # the table may have changed since the last run
         self.recount()
         self.snapshot(force=True)
-        if self.config.direct and self.stats.shots == 0 and not (should_stop is not None and should_stop()):
+        if self.config.direct and not self.gathered and not (should_stop is not None and should_stop()):
             self.gather()
             self.snapshot()
             if on_progress is not None:
