@@ -574,7 +574,8 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
 
 
 #: the most subscenes of one job, and the fewest patches a subscene must have on average
-MAX_SUBSCENES, MIN_PATCHES_PER_SUBSCENE = 256, 16
+#: (64 subscenes of a 4-triangle scene, 4,352 patches: 47 s against 4.4 s unsplit; 256: 120 s)
+MAX_SUBSCENES, MIN_PATCHES_PER_SUBSCENE = 64, 16
 
 
 def subscene_limit(n_patches: int) -> int:
