@@ -282,6 +282,7 @@ class JobManager:
         self.metrics = {"barriers": 0, "rays": 0, "bytes_relayed": 0, "previews": 0}
         self._metrics_lock = threading.Lock()
         self.store = JobStore(self.root / "jobs")
+        shutil.rmtree(self.root / "incoming", ignore_errors=True)  # uploads a crash cut short
         self._reload()
 
     def count(self, **deltas) -> None:
