@@ -37,7 +37,7 @@ BENCH := \
 	"bench_divide.py --sizes 2x3 --ks 1,2,4 --targets 0.2" \
 	"bench_service.py" \
 	"bench_binning.py --short" \
-	"bench_stiff.py --rhos 0.9,0.99 --time-limit 20" \
+	"bench_stiff.py --rhos 0.99 --patch 0.2 --time-limit 10" \
 	"bench_scale.py --rooms 3,8 --max-rays 2000000 --no-outputs" \
 	"bench_scaling.py --rows 6 --cols 6 --ks 1,2,4,8" \
 	"bench_checkpoint.py --rows 4 --cols 4" \
