@@ -70,7 +70,8 @@ def main(argv=None) -> int:
         lost = 100 * (led.back_faces.sum() + led.escaped.sum()) / led.emitted.sum()
         cell = "-" if mode == "exact" else f"{diag / div:.3f}"
         print(f"{mode:>7} {'on' if adaptive else 'off':>5} {solid if mode == 'binned' else '-':>5} {cell:>7} {a:9.4f} "
-              f"{d:9.4f} {m / ref_dark:12.4f} {lost:7.2f} {run.max_twin_bytes / 1e6:8.2f} {run.snapshots[-1].rays:11,d} "
+              f"{d:9.4f} {m / ref_dark:12.4f} {lost:7.2f} {run.max_twin_bytes / 1e6:8.2f} "
+              f"{run.snapshots[-1].rays:11,d} "
               f"{wall:7.2f}", flush=True)
     return 0
 

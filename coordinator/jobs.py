@@ -64,8 +64,8 @@ class LivePreview:
     ``1 / PREVIEW_SHARE`` times the last render's duration (a 4 s render of a
     million patches waits 200 s), so previews cost at most 2% of the solve's wall
     time; one more shows the final state.  Renders run in the job's
-    ``BarrierDisplay`` thread, never in the barrier loop.  ``current`` is (version, barrier, png bytes), replaced atomically;
-    version 0 means no preview yet.  A failing render is logged and turns
+    ``BarrierDisplay`` thread, never in the barrier loop.  ``current`` is (version, barrier, png
+    bytes), replaced atomically; version 0 means no preview yet.  A failing render is logged and turns
     previews off; it never fails the job.
     """
 
@@ -573,7 +573,8 @@ class JobManager:
         est = run.estimate  # the noise-aware estimate (dcrad.noise), from every subscene's sums
         rules = resolve(solver_config(job.spec.solver))
         return pb.Progress(job=job.summary(), barrier=run.barriers, shots=snap.shots, rays=snap.rays,
-                           rms_estimate=float(est.rms) if est is not None else residual_estimate(snap.residual, b, area),
+                           rms_estimate=float(est.rms) if est is not None
+                           else residual_estimate(snap.residual, b, area),
                            error=estimate_to_pb(est) if est is not None else None, accuracy=rules.accuracy,
                            ledger=ledger_to_pb(run.ledger), subscenes=subs,
                            bytes_relayed=sum(h.bytes_relayed for h in handles))

@@ -56,7 +56,8 @@ from .solve import Snapshot, Solver, Stiffness, stiffness
 __all__ = [
     "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor",
     "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers", "estimate_patches",
-    "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene", "boundaries_to_array", "boundaries_from_array", "run_subscenes",
+    "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene", "boundaries_to_array",
+    "boundaries_from_array", "run_subscenes",
 ]
 
 
@@ -276,7 +277,8 @@ class Subscene(Solver):
         if len(twin_idx):
             batches.append(self.twin_rays(pending, twin_idx, counts[~is_patch], power[~is_patch]))
         batch = batches[0] if len(batches) == 1 else RayBatch(
-            *(np.concatenate([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "power", "shooter", "half")))
+            *(np.concatenate([getattr(b, f) for b in batches])
+              for f in ("origins", "dirs", "power", "shooter", "half")))
         tally = self.fire(batch, t0)
 
         # Shooters give up their power (twins leave the pending buffer)
