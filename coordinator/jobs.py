@@ -32,7 +32,8 @@ import numpy as np
 from dcrad import export, render
 from dcrad.accuracy import resolve
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, assemble, check_subscenes, run_divided, subscene_limit, subscene_specs
+from dcrad.divide import (SUBSCENES_PER_WORKER, DivideConfig, assemble, check_subscenes, run_divided,
+                          subscene_limit, subscene_specs)
 from dcrad.energy import rms_error
 from dcrad.errors import DcradError
 from dcrad.pipeline import _is_floor_plan, divided_books, finish_run, prepare, scene_settings
@@ -402,7 +403,7 @@ class JobManager:
 
     @staticmethod
     def _divide(spec: pb.JobSpec, workers: int) -> DivideConfig:
-        """The job's DivideConfig; subscenes unset or 0: one per live worker."""
+        """The job's DivideConfig; subscenes unset or 0: ``workers`` (the caller's count)."""
         return from_pb(DivideConfig, spec.divide, subscenes=spec.divide.subscenes or max(1, workers))
 
     # == run ======================================================================
@@ -444,7 +445,8 @@ class JobManager:
         live = self.pool.wait_for(1, wait)
         if live == 0:
             raise NoWorkers(f"no worker registered within {wait:.0f} s")
-        divide = self._divide(spec, min(live, subscene_limit(len(patches))))  # a small scene: fewer
+        # two subscenes per worker (over-decomposed), fewer for a small scene
+        divide = self._divide(spec, min(SUBSCENES_PER_WORKER * live, subscene_limit(len(patches))))
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
         t0 = time.perf_counter()
         # specs (arrays), not Subscenes: the coordinator builds no Embree scene for them

@@ -23,6 +23,7 @@ from types import SimpleNamespace
 
 from .accuracy import resolve
 from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
+from .divide import SUBSCENES_PER_WORKER
 from .errors import DcradError
 from .progress import error_text
 from .settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
@@ -38,7 +39,7 @@ def _solver_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help="local worker processes with an embedded coordinator (0: solve in this process; "
                         "default: 2 for scenes of 150k patches or more on 2+ CPUs, else 0)")
-    add_divide_flags(p, "split into k subscenes (default: one per worker; 1: no partition, no twins)")
+    add_divide_flags(p, "split into k subscenes (default: two per worker; 1: no partition, no twins)")
     p.add_argument("--planes", default="", help="explicit partition planes, e.g. x=4.06,z=4.06 (each splits "
                                                 "every cell it crosses; overrides --subscenes)")
 
@@ -235,7 +236,7 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
         with LocalCluster(workers=args.workers) as cluster:
             print(f"dcrad: coordinator {cluster.address} with {args.workers} local workers", file=sys.stderr)
             solver = config.as_dict() | scene_values(args)
-            divide = divide_from_args(args, args.subscenes or args.workers).as_dict()
+            divide = divide_from_args(args, args.subscenes or SUBSCENES_PER_WORKER * args.workers).as_dict()
             try:
                 job = client.submit(cluster.address, path, solver, divide, (args.width, args.height))
             except client.grpc.RpcError as exc:

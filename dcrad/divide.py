@@ -55,7 +55,7 @@ from .solve import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
     "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor",
-    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers", "estimate_patches",
+    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers", "estimate_patches", "SUBSCENES_PER_WORKER",
     "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene", "boundaries_to_array",
     "boundaries_from_array", "run_subscenes",
 ]
@@ -598,6 +598,10 @@ def check_subscenes(k: int, n_patches: int) -> None:
 #: for their start-up (processes, upload, partition, loading: a few seconds) only on bigger
 #: scenes (bench/RESULTS.md, issue 14)
 AUTO_DIVIDE_PATCHES = 150_000
+#: subscenes per worker when --subscenes is not given: over-decomposed, so one worker's two
+#: subscenes even out (office 8x8 on 2 workers: 238 s with 2 subscenes, 192 s with 4;
+#: bench_scaling's model on the 3x3 office: 1.27x and 2.05x on 2 machines)
+SUBSCENES_PER_WORKER = 2
 
 
 def estimate_patches(triangles: np.ndarray, patch_size: float) -> int:

@@ -84,7 +84,7 @@ def _check_outputs(out: Path) -> tuple[dict, dict]:
 @pytest.mark.parametrize("scene", ["cornell", "office", "furnace"])
 def test_builtin_scene_outputs_agree(tmp_path, scene):
     """In this process (--workers 0, one subscene) and through the embedded service (two worker
-    processes, two subscenes): complete outputs, each consistent, and the same solution."""
+    processes, two subscenes each): complete outputs, each consistent, and the same solution."""
     runs = {}
     for workers in (0, 2):
         out = tmp_path / f"w{workers}"
@@ -94,7 +94,7 @@ def test_builtin_scene_outputs_agree(tmp_path, scene):
         assert "Traceback" not in r.stderr
         runs[workers] = _check_outputs(out)
     (rep0, a), (rep2, b) = runs[0], runs[2]
-    assert rep2["divided"]["subscenes"] == 2 and rep0["divided"] is None
+    assert rep2["divided"]["subscenes"] == 4 and rep0["divided"] is None  # two per worker
     # the same scene: the same patches, materials and emitted power on both paths
     for key in ("patch_area", "patch_rho", "patch_emission", "patch_source"):
         assert np.array_equal(a[key], b[key]), key
