@@ -36,7 +36,7 @@ from dcrad.pipeline import prepare
 from dcrad.solve import Solver
 
 
-def on_machines(per: np.ndarray, m: int, first: np.ndarray) -> np.ndarray:
+def on_machines(per: np.ndarray, m: int, first) -> np.ndarray:
     """(barriers,) s: k subscenes on m machines, assigned at each barrier by the work each did at
     the previous one (longest first, to the least loaded machine; ``first`` before any barrier)."""
     out = np.zeros(per.shape[1])

@@ -32,8 +32,15 @@ import numpy as np
 from dcrad import export, render
 from dcrad.accuracy import resolve
 from dcrad.config import SolverConfig
-from dcrad.divide import (SUBSCENES_PER_WORKER, DivideConfig, assemble, check_subscenes, run_divided,
-                          subscene_limit, subscene_specs)
+from dcrad.divide import (
+    SUBSCENES_PER_WORKER,
+    DivideConfig,
+    assemble,
+    check_subscenes,
+    run_divided,
+    subscene_limit,
+    subscene_specs,
+)
 from dcrad.energy import rms_error
 from dcrad.errors import DcradError
 from dcrad.pipeline import _is_floor_plan, divided_books, finish_run, prepare, scene_settings
