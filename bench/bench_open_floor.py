@@ -88,10 +88,10 @@ def main(argv=None) -> int:
                 run, *_ = solve_divided(p, cfg, DivideConfig(subscenes=k, mode=mode))
                 rays = run.snapshots[-1].rays
             out.append((*stats(p), rays))
-        mean, err, rays = (float(np.mean([o[i] for o in out])) for i in range(3))
+        mean, err, mean_rays = (float(np.mean([o[i] for o in out])) for i in range(3))
         base = err if base is None else base
         name = "unsplit" if k == 1 else f"{mode} k={k}"
-        print(f"{name:>12} {mean:10.4f} {mean / exact:8.4f} {err:8.4f} {err / base:8.3f} {int(rays):11,d}",
+        print(f"{name:>12} {mean:10.4f} {mean / exact:8.4f} {err:8.4f} {err / base:8.3f} {int(mean_rays):11,d}",
               flush=True)
     return 0
 
