@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .arrays import colsum, put_rows, rowsum, take_rows
+
 __all__ = ["Estimate", "NoiseTally", "NoiseSums", "combine", "half_mask", "split_power", "METHOD",
            "bias_ambient", "finite"]
 
@@ -191,6 +193,8 @@ class NoiseTally:
         n = len(patches)
         self.diff = np.zeros((n, 3))
         self.unshot = np.zeros((n, 3))
+        #: (n,) rows that emit (E != 0; E is fixed for a run): the only ones whose B - E differs from B
+        self._emits = rowsum(np.abs(patches.emission)) > 0 if n else np.zeros(0, bool)
         self._sums = NoiseSums(rho2=(patches.rho ** 2 * patches.area[:, None]).sum(axis=0),
                                area=float(patches.total_area) if n else 0.0,
                                rho1=(patches.rho * patches.area[:, None]).sum(axis=0))
@@ -205,43 +209,59 @@ class NoiseTally:
         """Shooters gave up their unshot power, its half-difference with it."""
         self.unshot[shooters] = 0.0
 
-    def commit(self, patches, hit: np.ndarray, received: np.ndarray, received_a: np.ndarray | None) -> None:
+    def commit(self, patches, land, received_a: np.ndarray | None) -> None:
         """Book one batch before ``deposit``: D and V of the rows hit, and the sums; O(rows hit).
 
-        hit (k,) distinct patch indices; received, received_a (k,3) W: what arrived
-        there, and what arrived by rays of half A (``Tally.hit/received/received_a``).
+        land: the rows hit with what they hold before the deposit and what they
+        reflect (``shoot.landing``: hit, area, rho, radiosity, reflected = rho *
+        received W, gain = reflected / area W/m^2); received_a (k,3) W: what arrived
+        there by rays of half A (``Tally.received_a``).
+
+        The increments are flat sums of products, no (k,3) axis reductions (10-40x
+        slower in numpy 2.4, arrays.py) and no BLAS calls (a multithreaded ``np.dot``
+        took 0.04-16 ms for the same 450k products on the shared 2-core machine,
+        ``(x * y).sum()`` a steady 0.22): with g = gain and A g = reflected,
+        A mean_c(new^2 - old^2) summed over rows is sum reflected * (2 old + g) / 3,
+        and |B - E|^2's increment is that minus 2/3 sum reflected * E, which only
+        the emitting rows hit carry.
         """
+        hit = land.hit
         if len(hit) == 0:
             return
-        area = patches.area[hit]
-        rho = patches.rho[hit]
-        old_b = patches.radiosity[hit]
-        new_b = old_b + rho * received / area[:, None]
-        e = patches.emission[hit]
         s = self._sums
-        s.b2 += float(np.dot(((new_b * new_b) - (old_b * old_b)).mean(axis=1), area))
-        s.r1 = s.r1 + (rho * received).sum(axis=0)
-        new_r, old_r = new_b - e, old_b - e
-        s.r2 += float(np.dot(((new_r * new_r) - (old_r * old_r)).mean(axis=1), area))
+        refl, gain = land.reflected, land.gain
+        b2 = float((refl * (2.0 * land.radiosity + gain)).sum()) / 3.0
+        s.b2 += b2
+        s.r1 = s.r1 + colsum(refl)
+        lit = np.flatnonzero(np.take(self._emits, hit))
+        if len(lit):
+            e = take_rows(patches.emission, hit[lit])
+            b2 -= 2.0 * float((refl[lit] * e).sum()) / 3.0
+        s.r2 += b2
         if received_a is None:
             return
-        gain = rho * 2.0 * (2.0 * received_a - received) / area[:, None]
-        old_d = self.diff[hit]
-        new_d = old_d + gain
-        self.diff[hit] = new_d
-        self.unshot[hit] += gain
-        s.d2 += float(np.dot(((new_d * new_d) - (old_d * old_d)).mean(axis=1), area))
+        dref = land.rho * 2.0 * (2.0 * received_a - land.received)  # A * the gain of D
+        gain_d = dref / land.area[:, None]
+        old_d = take_rows(self.diff, hit)
+        s.d2 += float((dref * (2.0 * old_d + gain_d)).sum()) / 3.0
+        put_rows(self.diff, hit, old_d + gain_d)
+        put_rows(self.unshot, hit, take_rows(self.unshot, hit) + gain_d)
 
     def resync(self, patches) -> None:
-        """Recompute the sums from the arrays (drops the round-off of the increments)."""
+        """Recompute the sums from the arrays (drops the round-off of the increments).
+
+        O(patches), at snapshots (which copy B anyway): channel sums by column
+        (``arrays.rowsum``) and flat sums, no (n,3) axis reductions or BLAS calls
+        (commit says why); 10x less than with them at 201k patches.
+        """
         a = patches.area
+        s = self._sums
         b = patches.radiosity
         r = b - patches.emission
-        s = self._sums
-        s.d2 = float(np.dot((self.diff * self.diff).mean(axis=1), a)) if len(a) else 0.0
-        s.b2 = float(np.dot((b * b).mean(axis=1), a)) if len(a) else 0.0
-        s.r2 = float(np.dot((r * r).mean(axis=1), a)) if len(a) else 0.0
-        s.r1 = (r * a[:, None]).sum(axis=0)
+        s.d2 = float((a * rowsum(self.diff * self.diff)).sum()) / 3.0
+        s.b2 = float((a * rowsum(b * b)).sum()) / 3.0
+        s.r2 = float((a * rowsum(r * r)).sum()) / 3.0
+        s.r1 = np.array([float((a * r[:, c]).sum()) for c in range(r.shape[1])])
 
     def sums(self) -> NoiseSums:
         s = self._sums

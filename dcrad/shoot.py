@@ -16,14 +16,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .arrays import colsum, rowsum
+from .arrays import colsum, put_rows, rowsum, take_rows
 from .config import TOL
 from .noise import half_mask, split_power
 from .patches import Patches
 from .rays import MISS, Tracer
 from .sampling import cosine_hemisphere_columns, kronecker_alpha, lattice, onb
 
-__all__ = ["RayBatch", "Tally", "ray_lattice", "per_ray_power", "patch_rays", "compact", "trace", "deposit"]
+__all__ = ["RayBatch", "Tally", "ray_lattice", "per_ray_power", "patch_rays", "compact", "trace", "deposit",
+           "Landing", "landing"]
 
 
 @dataclass
@@ -242,7 +243,7 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
     # time, and only the ratio kept/landed (mean rho where light lands) is used
     magnitude = np.abs(received)
     landed = colsum(magnitude)
-    kept = colsum(magnitude * patches.rho[hit])
+    kept = colsum(magnitude * take_rows(patches.rho, hit))
     power_back = batch.power[back]
     power_missed = batch.power[missed]
     back_by_obj = np.bincount(patches.obj[prim[back]], weights=rowsum(power_back), minlength=patches.n_objects)
@@ -262,18 +263,54 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
     )
 
 
+@dataclass
+class Landing:
+    """The rows a batch hit on the front, gathered once (``landing``) for ``deposit`` and
+    the noise tallies (noise.NoiseTally.commit): at 1.27M patches each gather of the rows
+    hit is a cache miss per row, so every table is read once and written once."""
+
+    hit: np.ndarray  #: (k,) distinct rows, sorted (``Tally.hit``)
+    received: np.ndarray  #: (k,3) W that arrived (``Tally.received``)
+    area: np.ndarray  #: (k,) m^2
+    rho: np.ndarray  #: (k,3)
+    radiosity: np.ndarray  #: (k,3) W/m^2, B before the deposit
+    unshot: np.ndarray  #: (k,3) W/m^2, dB before the deposit
+    reflected: np.ndarray  #: (k,3) W, rho * received: what the rows keep
+    gain: np.ndarray  #: (k,3) W/m^2, reflected / area: what B and dB gain
+
+    @property
+    def unshot_after(self) -> np.ndarray:
+        """(k,3) W/m^2: dB after the deposit."""
+        return self.unshot + self.gain
+
+
+def landing(patches: Patches, hit: np.ndarray, received: np.ndarray,
+            before: np.ndarray | None = None) -> Landing:
+    """Gather what the rows ``hit`` hold and what they keep of ``received`` (k,3) W; O(k).
+
+    ``before``: ``patches.unshot[hit]`` when the caller has it already.
+    """
+    area = take_rows(patches.area, hit)
+    rho = take_rows(patches.rho, hit)
+    reflected = rho * received
+    return Landing(hit, received, area, rho, take_rows(patches.radiosity, hit),
+                   take_rows(patches.unshot, hit) if before is None else before,
+                   reflected, reflected / area[:, None])
+
+
 def deposit(patches: Patches, hit: np.ndarray, received: np.ndarray,
-            before: np.ndarray | None = None) -> np.ndarray:
+            before: np.ndarray | None = None, land: Landing | None = None) -> np.ndarray:
     """Add received power to B and dB of the patches hit; return the absorbed power (3,) W.
 
     hit (k,) distinct patch indices, received (k,3) W (``Tally.hit``, ``Tally.received``).
     A patch keeps rho * received as radiosity and unshot radiosity (divided by its
-    area) and absorbs the rest.  Cost O(k): only the rows hit are touched.
-    ``before``: ``patches.unshot[hit]`` when the caller has it already (one gather less:
-    at 1.27M patches each pass over the rows hit is a cache miss per row).
+    area) and absorbs the rest.  Cost O(k): only the rows hit are touched, each table
+    gathered once and scattered once (``arrays.take_rows/put_rows``).
+    ``before``: ``patches.unshot[hit]`` when the caller has it already; ``land``: the
+    rows' ``landing`` when the caller has it (then ``before`` is not used).
     """
-    reflected = patches.rho[hit] * received
-    gain = reflected / patches.area[hit, None]
-    patches.radiosity[hit] += gain
-    patches.unshot[hit] = (patches.unshot[hit] if before is None else before) + gain
-    return colsum(received - reflected)
+    if land is None:
+        land = landing(patches, hit, received, before)
+    put_rows(patches.radiosity, hit, land.radiosity + land.gain)
+    put_rows(patches.unshot, hit, land.unshot_after)
+    return colsum(received - land.reflected)

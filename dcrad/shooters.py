@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .arrays import rowsum
+from .arrays import rowsum, take_rows
 from .patches import Patches
 
 __all__ = ["ShooterPool", "priority", "pool_size", "spatial_order"]
@@ -41,16 +41,19 @@ def pool_size(n: int, k: int) -> int:
     return int(min(max(n, 1), max(4 * k, 2.0 * (n * k) ** 0.5)))
 
 
-def priority(patches: Patches, rows: np.ndarray | None = None, unshot: np.ndarray | None = None) -> np.ndarray:
+def priority(patches: Patches, rows: np.ndarray | None = None, unshot: np.ndarray | None = None,
+             area: np.ndarray | None = None) -> np.ndarray:
     """(m,) W: sum over channels of |dB * A| of ``rows`` (all patches when None).
 
     The same arithmetic as ``Solver.rank`` (so the pool's order is rank's order);
-    ``unshot``: dB of those rows when the caller has it (no gather).
+    ``unshot``, ``area``: dB (k,3) and A (k,) of those rows when the caller has them
+    (no gather).
     """
     if rows is None:
         return rowsum(np.abs(patches.unshot * patches.area[:, None]))
-    u = patches.unshot[rows] if unshot is None else unshot
-    return rowsum(np.abs(u * patches.area[rows, None]))
+    u = take_rows(patches.unshot, rows) if unshot is None else unshot
+    a = take_rows(patches.area, rows) if area is None else area
+    return rowsum(np.abs(u * a[:, None]))
 
 
 class ShooterPool:
@@ -91,15 +94,16 @@ class ShooterPool:
         """The unshot array changed behind the pool's back: rebuild on the next request."""
         self.bound = np.inf
 
-    def update(self, rows: np.ndarray, unshot: np.ndarray | None = None) -> None:
+    def update(self, rows: np.ndarray, unshot: np.ndarray | None = None, area: np.ndarray | None = None) -> None:
         """Rows (distinct) whose unshot radiosity changed (shots, deposits): their priorities
         now, and those outside the pool that now beat the bound join it.
 
-        ``unshot``: their dB now (k,3), when the caller has it (no gather).  O(k).
+        ``unshot``, ``area``: their dB now (k,3) and A (k,), when the caller has them
+        (no gather).  O(k).
         """
         if not np.isfinite(self.bound) or len(rows) == 0:
             return
-        pr = priority(self.patches, rows, unshot)
+        pr = priority(self.patches, rows, unshot, area)
         self.prio[rows] = pr
         join = rows[~self.member[rows] & (pr > self.bound)]
         if len(join):

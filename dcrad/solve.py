@@ -53,7 +53,7 @@ import numpy as np
 
 from .config import SolverConfig
 from .accuracy import by_accuracy, noise_floor, resolve
-from .arrays import colsum, rowsum
+from .arrays import colsum, put_rows, rowsum, take_rows
 from .energy import Ledger
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
@@ -61,7 +61,7 @@ from .rays import Tracer
 from .report import escaped_light, flipped_normals
 from .direct import (GATHER_MARGIN, PILOT_SHARE, gather_direct, landing_rays, merge, noise_against_shooting, rescale_to_landed,
                      shadow_rays_for)
-from .shoot import deposit, patch_rays, ray_offset, trace
+from .shoot import deposit, landing, patch_rays, ray_offset, trace
 from .shooters import ShooterPool, pool_size, spatial_order
 from .snapshots import SnapshotStore
 
@@ -244,25 +244,27 @@ class Solver:
         return idx[order], counts[order], power[order], amounts[order]
 
     # -- the ledger's unshot sums, kept incrementally -------------------------------
-    def book_unshot(self, rows: np.ndarray, before: np.ndarray, after: np.ndarray | None = None) -> None:
+    def book_unshot(self, rows: np.ndarray, before: np.ndarray, after: np.ndarray | None = None,
+                    area: np.ndarray | None = None) -> None:
         """The unshot radiosity of ``rows`` (distinct) changed from ``before`` to ``after`` (k,3)
-        (None: read it): update the sums.
+        (None: read it): update the sums.  ``area``: the rows' areas (k,) when the caller has them.
 
         O(k).  ``recount`` redoes them exactly every ``recount_every`` batches.
         """
-        after = self.patches.unshot[rows] if after is None else after
-        area = self.patches.area[rows, None]
+        after = take_rows(self.patches.unshot, rows) if after is None else after
+        area = (take_rows(self.patches.area, rows) if area is None else area)[:, None]
         led = self.ledger
         led.unshot = led.unshot + colsum((after - before) * area)
         led.unshot_abs = led.unshot_abs + colsum((np.abs(after) - np.abs(before)) * area)
 
     def release(self, rows: np.ndarray, amounts: np.ndarray) -> None:
         """Shooters ``rows`` (distinct) give up ``amounts`` (k,3) W/m^2 of unshot radiosity."""
-        before = self.patches.unshot[rows]
+        before = take_rows(self.patches.unshot, rows)
         after = before - amounts
-        self.patches.unshot[rows] = after
-        self.book_unshot(rows, before, after)
-        self.pool.update(rows, after)
+        put_rows(self.patches.unshot, rows, after)
+        area = take_rows(self.patches.area, rows)
+        self.book_unshot(rows, before, after, area)
+        self.pool.update(rows, after, area)
 
     def recount(self) -> None:
         """The unshot sums from the whole table (one O(patches) pass; drops the increments' round-off)."""
@@ -300,14 +302,18 @@ class Solver:
         return np.zeros(3)
 
     def commit(self, batch, tally, shot=None) -> None:
-        """Receivers keep rho of what arrived; book the batch (``shot``: see ``account``)."""
-        self.noise.commit(self.patches, tally.hit, tally.received, tally.received_a)
+        """Receivers keep rho of what arrived; book the batch (``shot``: see ``account``).
+
+        The rows hit are gathered once (``shoot.landing``) for the noise tallies, the
+        deposit, the ledger and the pool.
+        """
         p, hit = self.patches, tally.hit
-        before = p.unshot[hit]
-        absorbed = deposit(p, hit, tally.received, before)
-        after = p.unshot[hit]
-        self.book_unshot(hit, before, after)
-        self.pool.update(hit, after)
+        land = landing(p, hit, tally.received)
+        self.noise.commit(p, land, tally.received_a)  # reads the old B of the rows hit
+        absorbed = deposit(p, hit, tally.received, land=land)
+        after = land.unshot_after
+        self.book_unshot(hit, land.unshot, after, land.area)
+        self.pool.update(hit, after, land.area)
         self.account(batch.power if shot is None else shot, tally, absorbed, self.crossings(batch, tally))
 
     def counted(self, shots: int, rays: int) -> int:

@@ -16,11 +16,12 @@ from dcrad.accuracy import by_accuracy, rays_for, resolve
 from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, solve_divided
 from dcrad.energy import rms_error
-from dcrad.noise import NoiseSums, combine, half_mask, split_power
+from dcrad.noise import NoiseSums, NoiseTally, combine, half_mask, split_power
 from dcrad.passes import solve_to_accuracy
 from dcrad.patches import Patches
 from dcrad.pipeline import prepare
 from dcrad.rays import Tracer
+from dcrad.shoot import deposit, landing
 from dcrad.solve import Solver
 from scenes.furnace import furnace_box
 
@@ -126,3 +127,51 @@ def test_resolve_is_idempotent_and_tol_is_expert():
     legacy = resolve(SolverConfig(tol=0.01), 1000)
     assert not by_accuracy(legacy) and legacy.rays_per_power == 2e5 and legacy.accuracy == 0.0
     assert resolve(legacy, 1000) == legacy
+
+
+def _definition_sums(p, diff):
+    """d2, b2, r2, r1 from their definitions (sum A mean_c x^2), with plain numpy."""
+    a, b = p.area, p.radiosity
+    r = b - p.emission
+    return (np.sum(a * np.mean(diff ** 2, axis=1)), np.sum(a * np.mean(b ** 2, axis=1)),
+            np.sum(a * np.mean(r ** 2, axis=1)), np.sum(a[:, None] * r, axis=0))
+
+
+def test_commit_increments_equal_the_sums_recomputed_from_the_arrays():
+    """NoiseTally.commit's flat-dot increments (no axis reductions) against the definitions.
+
+    Random table (some rows emit), 60 batches of random distinct sorted rows with signed
+    power (overshooting batches carry negative power): after each commit + deposit the
+    incremental sums equal the definitions recomputed from B, E and D, and D, V gained
+    exactly 2 rho (2 P_A - P) / A on the rows hit.
+    """
+    rng = np.random.default_rng(3)
+    n = 3000
+    vertices = rng.random((3 * n, 3))
+    faces = np.arange(3 * n).reshape(n, 3)
+    emission = np.where(rng.random((n, 1)) < 0.05, rng.random((n, 3)) * 5.0, 0.0)
+    p = Patches(vertices, faces, rng.random((n, 3)) * 0.9, emission, np.arange(n), np.zeros(n, np.int32))
+    tally = NoiseTally(p)
+    assert tally._emits.sum() == np.count_nonzero(emission.any(axis=1)) > 0
+    diff, unshot = np.zeros((n, 3)), np.zeros((n, 3))
+    for i in range(60):
+        hit = np.sort(rng.choice(n, int(rng.integers(1, n)), replace=False))
+        received = rng.random((len(hit), 3)) * (1.0 if i % 7 else -0.3)
+        received_a = received * rng.random((len(hit), 3))
+        gain_d = p.rho[hit] * 2.0 * (2.0 * received_a - received) / p.area[hit, None]
+        diff[hit] += gain_d
+        unshot[hit] += gain_d
+        land = landing(p, hit, received)
+        tally.commit(p, land, received_a)
+        deposit(p, hit, received, land=land)
+        d2, b2, r2, r1 = _definition_sums(p, diff)
+        s = tally.sums()
+        assert s.d2 == pytest.approx(d2, rel=1e-10) and s.b2 == pytest.approx(b2, rel=1e-10)
+        assert s.r2 == pytest.approx(r2, rel=1e-10) and s.r1 == pytest.approx(r1, rel=1e-10)
+        np.testing.assert_array_equal(tally.diff, diff)
+        np.testing.assert_array_equal(tally.unshot, unshot)
+    tally.resync(p)
+    s = tally.sums()
+    assert (s.d2, s.b2, s.r2) == pytest.approx((d2, b2, r2), rel=1e-13) and s.r1 == pytest.approx(r1, rel=1e-13)
+    tally.commit(p, landing(p, np.zeros(0, np.int64), np.zeros((0, 3))), np.zeros((0, 3)))  # empty batch
+    assert tally.sums().as_list() == s.as_list()
