@@ -267,11 +267,21 @@ class Solver:
         self.pool.update(rows, after, area)
 
     def recount(self) -> None:
-        """The unshot sums from the whole table (one O(patches) pass; drops the increments' round-off)."""
+        """The unshot sums and the noise tallies' sums from the whole table (one O(patches) pass
+        each; drops the increments' round-off).
+
+        Called at the start and end of ``run`` and every ``recount_every`` batches.  The
+        noise sums were resynced at every snapshot before (0.3 s each at 1.27M patches,
+        ~40 snapshots in a 15M-ray run); their increments are exact sums of the changes
+        (noise.NoiseTally.commit), so, like the ledger's, they only need the round-off
+        dropped now and then, and whoever changes B outside ``commit`` resyncs
+        (passes.blend).
+        """
         p = self.patches
         unshot = p.unshot * p.area[:, None]  # W per patch, signed
-        self.ledger.unshot = unshot.sum(axis=0)
-        self.ledger.unshot_abs = np.abs(unshot).sum(axis=0)
+        self.ledger.unshot = colsum(unshot)
+        self.ledger.unshot_abs = colsum(np.abs(unshot))
+        self.noise.resync(p)
         self._since_recount = 0
 
     def account(self, shot: np.ndarray, tally, absorbed: np.ndarray, extra_lost=0.0) -> None:
@@ -413,7 +423,6 @@ class Solver:
             return
         if self.snapshots and self.snapshots[-1].rays == self.stats.rays:
             return
-        self.noise.resync(self.patches)
         est = self.estimate()
         self.snapshots.append(
             Snapshot(self.elapsed(), self.stats.shots, self.stats.rays, self.residual(), self.ledger.closure(),
