@@ -222,20 +222,22 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
     # Scatter power onto the patches hit, one bincount per channel over the compact slots
     hit, slot = compact(prim[front], patches.scratch)
     k = len(hit)
-    power_front = batch.power[front]
+    power_front = take_rows(batch.power, front)
     received = np.empty((k, 3), np.float64)
     for c in range(channels):
         received[:, c] = np.bincount(slot, weights=power_front[:, c], minlength=k)
     if channels == 1:
         received[:, 1] = received[:, 0]
         received[:, 2] = received[:, 0]
-    # The same for the rays of half A, when the batch is split (noise.py): one more bincount
+    # The same for the rays of half A, when the batch is split (noise.py): one more bincount.
+    # Half B's rays weigh 0 (adding +-0 leaves every sum as it was): 4-9x cheaper than
+    # selecting half A's slots and weights with the mask first (262k rays: 1.0 vs 5-12 ms)
     received_a = None
     if batch.half is not None:
         in_a = batch.half[front]
         received_a = np.empty((k, 3), np.float64)
         for c in range(channels):
-            received_a[:, c] = np.bincount(slot[in_a], weights=power_front[in_a, c], minlength=k)
+            received_a[:, c] = np.bincount(slot, weights=power_front[:, c] * in_a, minlength=k)
         if channels == 1:
             received_a[:, 1:] = received_a[:, :1]
 
@@ -244,8 +246,8 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
     magnitude = np.abs(received)
     landed = colsum(magnitude)
     kept = colsum(magnitude * take_rows(patches.rho, hit))
-    power_back = batch.power[back]
-    power_missed = batch.power[missed]
+    power_back = take_rows(batch.power, back)
+    power_missed = np.compress(missed, batch.power, axis=0)
     back_by_obj = np.bincount(patches.obj[prim[back]], weights=rowsum(power_back), minlength=patches.n_objects)
     return Tally(
         received=received,
