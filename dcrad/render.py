@@ -240,7 +240,7 @@ def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
       brightest floor spot (non-emitting up-facing patches in the bottom quarter,
       by luminance of B; the 90th percentile by area among them, so a single
       noisy patch does not decide) is found, and the room around it is measured
-      by casting rays from 40% of the height above it along +-X and +-Z to the
+      by casting rays from 40% and 90% of the height above it along +-X and +-Z to the
       walls.  The eye stands inside that room near a top corner (80% of the
       height, 8% in from the two walls), looking at the diagonally opposite
       corner at 20% of the height, fov_y = 65 deg.  Of the four corners the one
@@ -299,11 +299,16 @@ def _lit_room(patches, tracer: Tracer, lo: np.ndarray, hi: np.ndarray):
     cum = np.cumsum(patches.area[order])
     spot = order[min(int(np.searchsorted(cum, 0.9 * cum[-1])), len(order) - 1)]
     p = patches.centroid[spot].copy()
-    p[1] += 0.4 * ext[1]
+    # rays along +-X and +-Z at 40% and 90% of the height: a doorway rarely reaches the
+    # ceiling, so the nearer of the two hits per direction is the room's wall
+    heights = p[1] + np.array([0.4, 0.9]) * ext[1]
     dirs = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0]])
-    prim, t = tracer.intersect(np.repeat(p[None], 4, axis=0), dirs)
+    origins = np.repeat(p[None], 8, axis=0)
+    origins[:, 1] = np.repeat(heights, 4)
+    prim, t = tracer.intersect(origins, np.tile(dirs, (2, 1)))
     far = np.array([hi[0] - p[0], p[0] - lo[0], hi[2] - p[2], p[2] - lo[2]])
-    t = np.where(prim == MISS, far, np.minimum(t, far))
+    t = np.where(prim == MISS, np.tile(far, 2), np.minimum(t, np.tile(far, 2))).reshape(2, 4).min(axis=0)
+    p[1] = heights[0]
     rlo, rhi = lo.copy(), hi.copy()
     rhi[0], rlo[0], rhi[2], rlo[2] = p[0] + t[0], p[0] - t[1], p[2] + t[2], p[2] - t[3]
     if np.any(rhi - rlo <= 1e-6 * patches.scale):

@@ -90,16 +90,20 @@ def test_stiff_divided_run_converges_exactly(tmp_path, rho):
     assert run.stiff is not None and run.stiff.ret > 0.85
 
 
-def test_divided_overshooting_needs_fewer_barriers_for_the_same_limit(tmp_path):
+@pytest.mark.parametrize("mode,gain", [("binned", 2.0), ("exact", 1.5)])
+def test_divided_overshooting_needs_fewer_barriers_for_the_same_limit(tmp_path, mode, gain):
+    """Binned twins hold crossing light to the barrier, so overshooting saves more barriers there;
+    exact forwarding also ends a barrier once 4 batches of crossing rays are held (measured with
+    seed 3: binned 22 -> 9, exact 23 -> 13 barriers)."""
     path = scenes.write_builtin("furnace", tmp_path, rho=0.9)
     runs = {}
     for ov in (0.0, 1.0):
         p = load_scene(path).patches(0.2)
         run, *_ = solve_divided(p, SolverConfig(tol=0.01, rays_per_power=5e4, overshoot=ov, seed=3),
-                                DivideConfig(subscenes=2), record=False)
+                                DivideConfig(subscenes=2, mode=mode), record=False)
         assert run.stopped_by == "tolerance" and max(run.barrier_closures) < 1e-9
         runs[ov] = (run.barriers, p.radiosity.copy(), p.area)
-    assert 2 * runs[1.0][0] <= runs[0.0][0], (runs[1.0][0], runs[0.0][0])
+    assert gain * runs[1.0][0] <= runs[0.0][0], (runs[1.0][0], runs[0.0][0])
     b0, b1, area = runs[0.0][1], runs[1.0][1], runs[0.0][2]
     scale = np.sqrt(np.dot((b0 ** 2).mean(axis=1), area) / area.sum())
     assert rms_error(b1, b0, area) < 0.1 * scale
