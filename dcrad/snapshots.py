@@ -33,7 +33,12 @@ class SnapshotStore(Sequence):
         # per column: numpy's axis-0 reduction of an (n,3) array is 10-40x slower (arrays.py)
         scale = np.array([np.abs(b[:, c]).max() if len(b) else 1.0 for c in range(b.shape[1])])
         scale = np.where(scale > 0, scale, 1.0).astype(np.float32)
-        self._data.append((b / scale).astype(np.float16))
+        # column by column into the float16 array: the same numbers as (b / scale).astype(float16)
+        # without the broadcast float64 temporary (1.27M patches: 13 ms against 17-20)
+        data = np.empty(b.shape, np.float16)
+        for c in range(b.shape[1]):
+            data[:, c] = b[:, c] / scale[c]
+        self._data.append(data)
         self._scale.append(scale)
 
     def __len__(self) -> int:
