@@ -164,7 +164,12 @@ class Patches:
     @cached_property
     def bounds(self) -> np.ndarray:
         """(2, 3) float64 axis-aligned box of the vertices used."""
-        used = self.vertices[np.unique(self.faces)] if len(self.faces) else np.zeros((1, 3))
+        if len(self.faces):  # a mask, not np.unique: 1.0 s at 1.27M patches for the same set
+            mask = np.zeros(len(self.vertices), bool)
+            mask[self.faces.ravel()] = True
+            used = self.vertices[mask]
+        else:
+            used = np.zeros((1, 3))
         return np.stack([used.min(axis=0), used.max(axis=0)])
 
     @cached_property
