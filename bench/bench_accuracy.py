@@ -26,9 +26,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dcrad.passes import solve_to_accuracy  # noqa: E402
 from dcrad.config import SolverConfig  # noqa: E402
 from dcrad.energy import rms_error  # noqa: E402
+from dcrad.passes import solve_to_accuracy  # noqa: E402
 from dcrad.pipeline import prepare, resolve_scene  # noqa: E402
 from dcrad.rays import Tracer  # noqa: E402
 from dcrad.solve import Solver  # noqa: E402

@@ -57,7 +57,8 @@ def main(argv=None) -> int:
         scale = float(np.sqrt(np.dot((ref.radiosity ** 2).mean(axis=1), ref.area) / ref.area.sum()))
         print(f"\noffice {size}: {len(ref)} patches; reference RMS(B*) = {scale:.4f} W/m^2")
         head = "  ".join(f"t@{t:g} / n@{t:g}" for t in targets)
-        print(f"{'k':>2} {'mode':>6} {'wall s':>7} {'shots':>8} {'rays':>10} {'final nRMS':>10}  {head}  twin bytes (max) / per portal cell")
+        print(f"{'k':>2} {'mode':>6} {'wall s':>7} {'shots':>8} {'rays':>10} {'final nRMS':>10}  {head}"
+              "  twin bytes (max) / per portal cell")
         for k in ks:
             for mode in (["binned", "exact"] if k > 1 else ["-"]):
                 _, p, _ = prepare(path)
@@ -73,9 +74,11 @@ def main(argv=None) -> int:
                 errs = [rms_error(b, ref.radiosity, ref.area) / scale for b in bs]
                 times = [s.time for s in snaps]
                 shots = [s.shots for s in snaps]
-                cols_t = "  ".join(f"{first_below(times, errs, t):6.2f}s / {first_below(shots, errs, t):8.0f}" for t in targets)
+                cols_t = "  ".join(f"{first_below(times, errs, t):6.2f}s / {first_below(shots, errs, t):8.0f}"
+                                   for t in targets)
                 per_cell = f"{twin / cells:.1f}" if cells else "-"
-                print(f"{k:>2} {mode:>6} {wall:7.2f} {snaps[-1].shots:8d} {snaps[-1].rays:10d} {errs[-1]:10.4f}  {cols_t}  {twin} / {per_cell}")
+                print(f"{k:>2} {mode:>6} {wall:7.2f} {snaps[-1].shots:8d} {snaps[-1].rays:10d} {errs[-1]:10.4f}"
+                      f"  {cols_t}  {twin} / {per_cell}")
     print("\nDense twins would take solid^2 * 2 directions * 3 channels * 8 B = 3072 B per portal cell (solid 8).")
     return 0
 

@@ -2,8 +2,8 @@
 
 For each k the subscenes run in this process, one after another (``SequentialExecutor``),
 and every subscene's ``iterate`` is timed on its own, in CPU seconds of this process
-(``time.process_time``: the machine is shared, and wall time would count the others' load).  A barrier on k machines takes
-the slowest subscene's iterate (the critical path) plus the exchange; the exchange is
+(``time.process_time``: the machine is shared, and wall time would count the others' load).
+A barrier on k machines takes the slowest subscene's iterate (the critical path) plus the exchange; the exchange is
 modelled for a stated link: the coordinator relays every subscene's crossing rays (in
 and out over its one link), with 4 round trips per barrier (iterate, collect, deliver,
 checkpoint).  Predicted time on k machines = sum over barriers of (critical path +

@@ -23,13 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
+import scenes
 from dcrad.config import SolverConfig
 from dcrad.pipeline import prepare
 from dcrad.rays import Tracer
 from dcrad.shoot import patch_rays
 from dcrad.solve import Solver
-
-import scenes
 
 
 def raw_embree_rate(patches, tracer, rays=1_000_000, repeats=3) -> float:

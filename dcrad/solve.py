@@ -51,16 +51,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import SolverConfig
 from .accuracy import by_accuracy, noise_floor, resolve
 from .arrays import colsum, put_rows, rowsum, take_rows
+from .config import SolverConfig
+from .direct import (
+    GATHER_MARGIN,
+    PILOT_SHARE,
+    gather_direct,
+    landing_rays,
+    merge,
+    noise_against_shooting,
+    rescale_to_landed,
+    shadow_rays_for,
+)
 from .energy import Ledger
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
 from .report import escaped_light, flipped_normals
-from .direct import (GATHER_MARGIN, PILOT_SHARE, gather_direct, landing_rays, merge, noise_against_shooting, rescale_to_landed,
-                     shadow_rays_for)
 from .shoot import deposit, landing, patch_rays, ray_offset, trace
 from .shooters import ShooterPool, pool_size, spatial_order
 from .snapshots import SnapshotStore
@@ -73,7 +81,8 @@ RECOUNT_EVERY = 256
 
 
 #: the report's line for a scene whose rho and E are grey
-GREY_CHOICE = "grey scene (every rho and E has equal channels): one colour channel is tallied and copied to the other two"
+GREY_CHOICE = ("grey scene (every rho and E has equal channels): "
+               "one colour channel is tallied and copied to the other two")
 
 
 @dataclass

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 
-
 __all__ = ["read_texture", "srgb_to_linear", "uv_means", "uv_at"]
 
 #: sample points per covered texel, and the bounds of the grid side m (m^2 points per triangle)

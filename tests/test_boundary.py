@@ -470,10 +470,12 @@ def test_transfer_rays_routes_every_ray_once_to_the_far_side():
     from dcrad.boundary import RayParcel, transfer_rays
 
     rng = np.random.default_rng(1)
-    bs = [make_boundary(0, 0, 1.0, (0, 0), (1, 1), 0, 1, 0.1, 4), make_boundary(1, 2, 1.0, (0, 0), (1, 1), 1, 2, 0.1, 4)]
+    bs = [make_boundary(0, 0, 1.0, (0, 0), (1, 1), 0, 1, 0.1, 4),
+          make_boundary(1, 2, 1.0, (0, 0), (1, 1), 1, 2, 0.1, 4)]
     m = 1_000_000
     bid = rng.integers(0, 2, m)
-    parcel = RayParcel(bid, rng.random((m, 3)), rng.normal(size=(m, 3)), rng.random((m, 3)) * rng.choice([-1, 1], (m, 1)))
+    parcel = RayParcel(bid, rng.random((m, 3)), rng.normal(size=(m, 3)),
+                       rng.random((m, 3)) * rng.choice([-1, 1], (m, 1)))
     out = transfer_rays({1: parcel}, bs)  # cell 1 touches both: boundary 0 to cell 0, 1 to cell 2
     assert len(out[0]) == int((bid == 0).sum()) and len(out[2]) == int((bid == 1).sum()) and len(out[1]) == 0
     order = np.argsort(out[0].power[:, 0])

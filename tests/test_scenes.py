@@ -12,8 +12,8 @@ from trimesh.exchange.obj import parse_mtl
 import scenes
 from scenes.cornell import cornell_box
 from scenes.furnace import furnace_box, furnace_expected
-from scenes.office import office_floor, room_rect
 from scenes.objwriter import ObjWriter
+from scenes.office import office_floor, room_rect
 
 UP = np.array([0.0, 1.0, 0.0])
 
@@ -21,7 +21,7 @@ UP = np.array([0.0, 1.0, 0.0])
 # -- helpers -------------------------------------------------------------------------
 def read_obj(path):
     """Tiny OBJ reader: {object name: (material, (n, 3, 3) triangles)} in file order."""
-    verts, objs, name, mat, libs = [], {}, None, None, []
+    verts, objs, name, libs = [], {}, None, []
     for line in path.read_text().splitlines():
         parts = line.split()
         if not parts or parts[0].startswith("#"):
@@ -189,7 +189,8 @@ def test_furnace_rgb(tmp_path):
     objs, mats = common_checks(path)
     assert np.allclose(mats[objs["floor"][0]]["kd"], (0.2, 0.5, 0.8))
     exp = furnace_expected(rho=(0.2, 0.5, 0.8), emission=(1, 2, 3))
-    assert np.allclose(exp["mean_b_minus_e"], np.array([0.2, 0.5, 0.8]) * [1, 2, 3] * 0.2 / ((1 - np.array([0.2, 0.5, 0.8])) * 6))
+    rho = np.array([0.2, 0.5, 0.8])
+    assert np.allclose(exp["mean_b_minus_e"], rho * [1, 2, 3] * 0.2 / ((1 - rho) * 6))
     with pytest.raises(ValueError):
         furnace_box(tmp_path, rho=(0.2, 0.5, 0.8))
     with pytest.raises(ValueError):
@@ -440,8 +441,8 @@ def test_two_sided_mixed_winding_furnace_identity(tmp_path, rho):
     the inward sides meets rho Phi / ((1 - rho) A) within 1% and the ledger closes (no back
     faces).  One-sided, the same model loses light and warns about flipped normals."""
     from dcrad.config import SolverConfig
-    from dcrad.solve import Solver
     from dcrad.scene import load_scene
+    from dcrad.solve import Solver
     from scenes.variants import variant
 
     src = scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)

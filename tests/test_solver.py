@@ -61,7 +61,8 @@ def f_perpendicular(l: float, w: float, h: float) -> float:
         * (W * W * (1 + W * W + H * H) / ((1 + W * W) * (W * W + H * H))) ** (W * W)
         * (H * H * (1 + H * H + W * W) / ((1 + H * H) * (H * H + W * W))) ** (H * H)
     )
-    return (1 / (math.pi * W)) * (W * math.atan(1 / W) + H * math.atan(1 / H) - s * math.atan(1 / s) + 0.25 * math.log(term))
+    return (1 / (math.pi * W)) * (W * math.atan(1 / W) + H * math.atan(1 / H) - s * math.atan(1 / s)
+                                  + 0.25 * math.log(term))
 
 
 def tolerance(f: float, rays: int) -> float:

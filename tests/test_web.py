@@ -34,7 +34,8 @@ from dcrad.v1 import dcrad_pb2 as pb
 ROOT = Path(__file__).resolve().parents[1]
 ARTIFACTS = ROOT / "test-artifacts"
 ACCOUNTS = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported")
-METRIC_LINE = re.compile(r'^[a-zA-Z_:][a-zA-Z0-9_:]*(\{[a-zA-Z_][a-zA-Z0-9_]*="[^"]*"(,[a-zA-Z_][a-zA-Z0-9_]*="[^"]*")*\})? '
+METRIC_LINE = re.compile(r'^[a-zA-Z_:][a-zA-Z0-9_:]*'
+                         r'(\{[a-zA-Z_][a-zA-Z0-9_]*="[^"]*"(,[a-zA-Z_][a-zA-Z0-9_]*="[^"]*")*\})? '
                          r'[-+]?(\d+(\.\d*)?([eE][-+]?\d+)?|Inf|NaN)$')
 
 

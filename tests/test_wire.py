@@ -12,8 +12,17 @@ import pytest
 from dcrad.energy import Ledger
 from dcrad.errors import ExchangeError
 from dcrad.v1 import dcrad_pb2 as pb
-from dcrad.wire import (CHUNK_BYTES, FileAssembler, array_chunks, arrays_to_chunks, assemble_arrays,
-                        file_chunks, ledger_from_pb, ledger_to_pb, safe_relpath)
+from dcrad.wire import (
+    CHUNK_BYTES,
+    FileAssembler,
+    array_chunks,
+    arrays_to_chunks,
+    assemble_arrays,
+    file_chunks,
+    ledger_from_pb,
+    ledger_to_pb,
+    safe_relpath,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
