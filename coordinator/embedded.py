@@ -30,6 +30,8 @@ from pathlib import Path
 import grpc
 
 from dcrad.errors import ConfigError, DcradError
+from dcrad.v1 import dcrad_pb2 as pb
+from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 
 #: environment of a child of LocalCluster: the parent's pid, and "1" when the parent-death
 #: signal may be used (the child was spawned from the parent's main thread)
@@ -92,6 +94,8 @@ def die_with_parent(environ=os.environ) -> bool:
 
 def _read_port(proc: subprocess.Popen, role: str, timeout: float, on_line=None) -> int:
     """The gRPC port from the 'listening on host:port' line; earlier lines go to ``on_line``."""
+    if proc.stdout is None:
+        raise DcradError(f"the {role} process was started without a stdout pipe")
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         line = proc.stdout.readline()
@@ -113,8 +117,11 @@ class LocalCluster:
                  log_dir: str | Path | None = None, start_timeout: float = 60.0,
                  coordinator_args: tuple[str, ...] = (), port: int = 0, web: bool = True):
         self.n_workers = workers
-        self._tmp = None if data else tempfile.TemporaryDirectory(prefix="dcrad-cluster-")
-        self.data = Path(data or self._tmp.name)
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
+        if not data:
+            self._tmp = tempfile.TemporaryDirectory(prefix="dcrad-cluster-")
+            data = self._tmp.name
+        self.data = Path(data)
         self.python = python
         self.log_dir = Path(log_dir) if log_dir else self.data
         self.start_timeout = start_timeout
@@ -146,6 +153,8 @@ class LocalCluster:
 
     def kill_coordinator(self) -> None:
         """SIGKILL the coordinator: no goodbye, as a crash would be (the workers keep running)."""
+        if self.coordinator is None:
+            raise DcradError("kill_coordinator: the coordinator was never started")
         self.coordinator.kill()
         self.coordinator.wait(10)
         if self.coordinator.stdout:
@@ -163,9 +172,6 @@ class LocalCluster:
 
     def wait_registered(self, n: int) -> None:
         """Wait until the coordinator lists n live workers."""
-        from dcrad.v1 import dcrad_pb2 as pb
-        from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
-
         deadline = time.monotonic() + self.start_timeout
         with grpc.insecure_channel(self.address) as ch:
             stub = pb_grpc.CoordinatorStub(ch)
@@ -180,7 +186,7 @@ class LocalCluster:
         raise DcradError(f"fewer than {n} workers registered within {self.start_timeout:.0f} s")
 
     def _start_coordinator(self) -> None:
-        web = ("--web-port", "0", "--web-host", "127.0.0.1") if self.web else ("--web-port", "-1")
+        web: tuple[str, ...] = ("--web-port", "0", "--web-host", "127.0.0.1") if self.web else ("--web-port", "-1")
         if "--web-port" in self.coordinator_args:
             web = ()
         self.coordinator = self._spawn("coordinator", "--port", str(self.port), "--data",

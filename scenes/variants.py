@@ -15,6 +15,9 @@ from __future__ import annotations
 import pathlib
 
 import numpy as np
+import OpenImageIO as oiio
+
+from dcrad.scene import UP_AXES
 
 __all__ = ["variant", "CHECKER_LINEAR", "write_checker"]
 
@@ -24,21 +27,19 @@ CHECKER_LINEAR = (0.6, 1.0)
 
 def _to_frame(up: str) -> np.ndarray:
     """Rotation taking Y-up coordinates to a frame whose up axis is ``up`` (inverse of dcrad's)."""
-    from dcrad.scene import UP_AXES
-
     return np.array(UP_AXES[up], np.float64).T
 
 
 def write_checker(path, lo: float, hi: float, n: int = 4) -> None:
     """An n x n RGB checker PNG of two linear grey values (clipped to [0, 1], sRGB-encoded)."""
-    import OpenImageIO as oiio
-
     ij = np.add.outer(np.arange(n), np.arange(n)) % 2
     lin = np.where(ij == 0, lo, hi)
     lin = np.clip(lin, 0.0, 1.0)
     enc = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
     px = np.repeat(np.round(enc * 255)[:, :, None], 3, axis=2).astype(np.uint8)
     out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise OSError(f"cannot write {path}: {oiio.geterror()}")
     out.open(str(path), oiio.ImageSpec(n, n, 3, oiio.UINT8))
     out.write_image(px)
     out.close()
