@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SolveError
+from .render import luminance, tonemap
 
 __all__ = ["write_png", "write_exr", "write_patches_ply", "write_glb", "write_radiosity_npz"]
 
@@ -37,7 +38,7 @@ def _prepare(path) -> str:
 
 
 def _write_image(path, pixels: np.ndarray, fmt, attrs: dict) -> None:
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module and must not load OpenImageIO
 
     path = _prepare(path)
     if pixels.ndim == 2:
@@ -62,7 +63,7 @@ def _write_image(path, pixels: np.ndarray, fmt, attrs: dict) -> None:
 
 def write_png(path, img_uint8: np.ndarray) -> None:
     """img_uint8 : (H, W, 3|4) uint8, already sRGB-encoded (see render.tonemap)."""
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module and must not load OpenImageIO
 
     img = np.asarray(img_uint8)
     if img.dtype != np.uint8:
@@ -72,7 +73,7 @@ def write_png(path, img_uint8: np.ndarray) -> None:
 
 def write_exr(path, img_float32: np.ndarray, half: bool = True) -> None:
     """img_float32 : (H, W, 3|4) linear float; stored as half (default) or float, zip."""
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module and must not load OpenImageIO
 
     img = np.asarray(img_float32, np.float32)
     if not np.all(np.isfinite(img)):
@@ -98,7 +99,7 @@ def write_patches_ply(path, patches, dtype=np.float32, rotation=None) -> None:
     vertices as float32.  Read back with ``trimesh.load(path, process=False)``;
     the face properties are in ``mesh.metadata['_ply_raw']['face']['data']``.
     """
-    import trimesh
+    import trimesh  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
 
     path = _prepare(path)
     b = np.asarray(patches.radiosity, np.float64)
@@ -164,9 +165,7 @@ def write_glb(
 
     returns the exposure used (float)
     """
-    import trimesh
-
-    from .render import luminance, tonemap
+    import trimesh  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
 
     path = _prepare(path)
     n = len(patches)

@@ -262,7 +262,7 @@ def _floats(tokens, mat: MtlMaterial, key: str, text: str, no: int):
 
 def read_mtl(path: str, label: str, folder: str) -> dict[str, MtlMaterial]:
     """Read one MTL file.  Texture paths are checked against ``folder``."""
-    from trimesh.exchange.obj import parse_mtl
+    from trimesh.exchange.obj import parse_mtl  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
 
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:

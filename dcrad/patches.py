@@ -54,7 +54,7 @@ def subdivide(vertices: np.ndarray, faces: np.ndarray, max_edge: float):
     where ``index`` maps each new face to the face it came from.  Uses
     trimesh's midpoint subdivision, which keeps shared edges watertight.
     """
-    import trimesh.remesh
+    import trimesh.remesh  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
 
     if max_edge is None or max_edge <= 0 or len(faces) == 0:
         return vertices, faces, np.arange(len(faces), dtype=np.int64)

@@ -219,7 +219,7 @@ def false_colour(value: np.ndarray, front: np.ndarray, back: np.ndarray, top: fl
     one-sided surface is seen from behind, black for nothing.  At the right a colour bar
     (top at the top) with ``ticks`` labels in lux, drawn with OpenImageIO's text renderer.
     """
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module and must not load OpenImageIO
 
     h, w = value.shape
     with np.errstate(divide="ignore", invalid="ignore"):

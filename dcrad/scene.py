@@ -360,7 +360,7 @@ def gltf_files(header: dict, path: str) -> list[str]:
 
 
 def _node_matrix(node: dict) -> np.ndarray:
-    import trimesh.transformations as tf
+    import trimesh.transformations as tf  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
 
     if "matrix" in node:
         return np.array(node["matrix"], np.float64).reshape(4, 4).T
@@ -539,7 +539,7 @@ def _gltf_blob(path: str, header: dict, uri, image: dict) -> bytes:
 
 
 def _load_gltf(path: str, warnings: list, scale: float):
-    import trimesh
+    import trimesh  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
 
     header = gltf_header(path)
     table = _gltf_materials(header, path, warnings)

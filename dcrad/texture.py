@@ -36,7 +36,7 @@ def read_texture(path: str) -> np.ndarray:
 
     Grey images are repeated to three channels; alpha and further channels are dropped.
     """
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module and must not load OpenImageIO
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
