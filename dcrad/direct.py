@@ -103,13 +103,13 @@ def _light_groups(patches: Patches, emitters: np.ndarray, total: np.ndarray):
     g = int(gid.max(initial=0)) + 1
     phi_g = np.bincount(gid, weights=total, minlength=g)
     c = patches.centroid[emitters]
-    centre = np.stack([np.bincount(gid, weights=total * c[:, j], minlength=g) for j in range(3)], 1)
-    centre /= np.maximum(phi_g, 1e-300)[:, None]
+    centre = (np.stack([np.bincount(gid, weights=total * c[:, j], minlength=g) for j in range(3)], 1)
+              / np.maximum(phi_g, 1e-300)[:, None])
     spread = np.bincount(gid, weights=total * ((c - centre[gid]) ** 2).sum(axis=1), minlength=g)
     spread = spread / np.maximum(phi_g, 1e-300) + patches.area[emitters].max() + 1e-12
     nrm = patches.normal[emitters]
-    normal = np.stack([np.bincount(gid, weights=total * nrm[:, j], minlength=g) for j in range(3)], 1)
-    normal /= np.maximum(phi_g, 1e-300)[:, None]
+    normal = (np.stack([np.bincount(gid, weights=total * nrm[:, j], minlength=g) for j in range(3)], 1)
+              / np.maximum(phi_g, 1e-300)[:, None])
     return gid, phi_g, centre, spread, normal
 
 

@@ -142,12 +142,12 @@ def parse_obj(text: str, label: str) -> ObjData:
     res = np.where(idx > 0, idx - 1, nv_tok + idx)
     out = (idx == 0) | (res < 0) | (res >= len(v))
     if out.any():
-        k = int(np.argmax(out))
-        face = int(np.searchsorted(np.cumsum(count), k, side="right"))
+        bad_at = int(np.argmax(out))
+        face = int(np.searchsorted(np.cumsum(count), bad_at, side="right"))
         raise _fail(
             label, fline[face],
-            f"face index {int(idx[k])} out of range ({len(v)} vertices in file, "
-            f"{int(nv_tok[k])} defined before this line)", lines[fline[face] - 1],
+            f"face index {int(idx[bad_at])} out of range ({len(v)} vertices in file, "
+            f"{int(nv_tok[bad_at])} defined before this line)", lines[fline[face] - 1],
         )
     start = np.cumsum(count) - count
     ntri = count - 2
@@ -298,5 +298,6 @@ def read_mtl(path: str, label: str, folder: str) -> dict[str, MtlMaterial]:
     for name, mat in out.items():
         got = parsed.get(name, {}).get("kd")  # exact floats (last Kd statement wins)
         if mat.kd is not None and got is not None:
-            mat.kd = [float(got)] * 3 if np.isscalar(got) else [float(x) for x in got]
+            kd = np.asarray(got, np.float64)
+            mat.kd = [float(kd)] * 3 if kd.ndim == 0 else [float(x) for x in kd]
     return out

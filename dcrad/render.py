@@ -281,9 +281,10 @@ def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
             _, t = tracer.intersect(rc[None], (eye - rc)[None])
             if min(float(t[0]), 1.0) > best_t + 1e-9:
                 best_eye, best_t = eye, min(float(t[0]), 1.0)
+    assert best_eye is not None  # the first corner always beats best_t = -1 (t >= 0)
     target = rlo + rhi - best_eye
     target[1] = rlo[1] + 0.2 * rext[1]
-    return Camera(best_eye, target, (0, 1, 0), 65.0, width, height)
+    return Camera(tuple(best_eye), tuple(target), (0, 1, 0), 65.0, width, height)
 
 
 def _lit_room(patches, tracer: Tracer, lo: np.ndarray, hi: np.ndarray):
@@ -331,7 +332,7 @@ def topdown_camera(patches, width: int = 640, height: int = 480) -> Camera:
     c = 0.5 * (lo + hi)
     eye = np.array([c[0], hi[1] + 0.1 * patches.scale, c[2]])
     tall = 1.04 * max(ext[2], ext[0] * height / width)
-    return Camera(eye, (c[0], lo[1], c[2]), (0, 0, -1), 45.0, width, height, tall)
+    return Camera(tuple(eye), (c[0], lo[1], c[2]), (0, 0, -1), 45.0, width, height, tall)
 
 
 def cutaway_mask(patches) -> np.ndarray:
