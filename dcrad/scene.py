@@ -127,7 +127,7 @@ class Scene:
         src = keep[idx]
         emission = self.emission[src]
         rho = self._patch_rho(v, f, src) if self.texture_maps and len(f) != len(keep) else self.rho[src]
-        twin = None
+        twin = np.full(len(f), -1, np.int64)  # no back sides: what Patches fills in for None
         if self.two_sided is not None and self.two_sided[src].any():
             # back sides: the same triangles reversed, after every front patch; they reflect
             # like the front (same rho) and emit nothing (Ke / emissive is the front's)
@@ -283,10 +283,11 @@ def _load_obj(path: str, warnings: list):
     # one label per group; groups with equal labels share an index
     label_ix = {n: i for i, n in enumerate(dict.fromkeys(names))}
     gmap = np.array([label_ix[n] for n in names], np.int32)
-    g = data.group
-    rho_t, textured, images, tex_maps = rho[g], [], {}, []
+    grp = data.group
+    rho_t, textured, tex_maps = rho[grp], [], []
+    images: dict = {}
     for k, (m, written, full) in maps.items():
-        rows = np.flatnonzero(g == k)
+        rows = np.flatnonzero(grp == k)
         where = f"material '{m.name}' in {m.file}"
         image = _texture(images, full, written, where, "Kd factor", warnings)
         if image is None or not len(rows):
@@ -295,8 +296,8 @@ def _load_obj(path: str, warnings: list):
         rho_t[rows] = _textured_rho(rho[k], image, uv, where, written, warnings)
         textured.append(names[k])
         tex_maps.append(TextureMap(rows, rho[k].copy(), image, uv))
-    extras = {"two_sided": sided[g], "textured": list(dict.fromkeys(textured)), "maps": tex_maps}
-    return data.vertices, data.faces, rho_t, em[g], gmap[g], list(label_ix), None, extras
+    extras = {"two_sided": sided[grp], "textured": list(dict.fromkeys(textured)), "maps": tex_maps}
+    return data.vertices, data.faces, rho_t, em[grp], gmap[grp], list(label_ix), None, extras
 
 
 def _texture(cache: dict, full: str, written: str, where: str, factor: str, warnings: list):
@@ -543,7 +544,7 @@ def _load_gltf(path: str, warnings: list, scale: float):
 
     header = gltf_header(path)
     table = _gltf_materials(header, path, warnings)
-    by_label = {}
+    by_label: dict[str, dict] = {}
     for i, m in enumerate(header.get("materials", [])):
         by_label.setdefault(m.get("name") or f"material{i}", m)
     images: dict = {}
@@ -552,8 +553,11 @@ def _load_gltf(path: str, warnings: list, scale: float):
         scene = trimesh.load(path, force="scene")
     except Exception as exc:  # trimesh raises many kinds
         raise SceneFormatError(f"cannot load glTF {path}: {type(exc).__name__}: {exc}") from None
+    if not isinstance(scene, trimesh.Scene):  # force="scene" always gives one; the stub says Geometry
+        raise SceneFormatError(f"cannot load glTF {path}: trimesh returned a {type(scene).__name__}, not a scene")
     parents = scene.graph.transforms.parents
-    vs, fs, rhos, ems, objs, labels = [], [], [], [], [], {}
+    vs, fs, rhos, ems, objs = [], [], [], [], []
+    labels: dict[str, int] = {}
     nv = 0
     for node in scene.graph.nodes_geometry:
         matrix, gname = scene.graph[node]
