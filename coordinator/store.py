@@ -41,6 +41,7 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
@@ -259,7 +260,7 @@ def encode_delta(arrays: dict, prev: dict | None) -> tuple[dict, str]:
         k in prev and prev[k].shape == arrays[k].shape and prev[k].dtype == arrays[k].dtype
         for k in ROW_ARRAYS if k in arrays)
     out = {k: np.asarray(v) for k, v in arrays.items() if not (usable and k in ROW_ARRAYS)}
-    if not usable:
+    if not usable or prev is None:
         out["_kind"] = np.array("full")
         return out, "full"
     for k in ROW_ARRAYS:
@@ -298,6 +299,7 @@ def decode_delta(stored: dict, prev: dict | None) -> dict:
         out[k] = v
     if kind == "full":
         return out
+    assert prev is not None  # a change without prev was refused above
     for k in ROW_ARRAYS:
         if k in out or k not in prev:
             continue
@@ -313,6 +315,18 @@ def decode_delta(stored: dict, prev: dict | None) -> dict:
             continue
         out[k] = a
     return out
+
+
+class CheckpointStats(TypedDict):
+    """``CheckpointWriter.stats``: barriers written and skipped (superseded), bytes on disk,
+    bytes a full checkpoint would have taken, seconds spent writing."""
+
+    barriers: int
+    skipped: int
+    bytes: int
+    full_bytes: int
+    seconds: float
+    per_barrier: list[tuple[int, int, int, float]]  # (barrier, bytes, full bytes, seconds)
 
 
 def _npz_bytes(arrays: dict) -> bytes:
@@ -344,8 +358,8 @@ class CheckpointWriter:
         self._chain: dict[int, list[tuple[str, int]]] = {}
         self._full_bytes: dict[int, int] = {}
         self.barrier = start_barrier  #: the last barrier on disk
-        self.stats = {"barriers": 0, "skipped": 0, "bytes": 0, "full_bytes": 0, "seconds": 0.0,
-                      "per_barrier": []}  # (barrier, bytes, full bytes, seconds)
+        self.stats: CheckpointStats = {"barriers": 0, "skipped": 0, "bytes": 0, "full_bytes": 0, "seconds": 0.0,
+                                       "per_barrier": []}
         self.error: str = ""
         self._thread = threading.Thread(target=self._loop, name=f"checkpoints-{self.folder.parent.name}",
                                         daemon=True)
