@@ -84,7 +84,7 @@ class LivePreview:
         self.seconds = 0.0  #: total render time
         self._last = -math.inf
         self._cost = 0.0  # s the last render took
-        self._view = None  # (camera, mask, tracer), built on first use
+        self._view: tuple[render.Camera, np.ndarray | None, Tracer] | None = None  # built on first use
         self._broken = False
 
     @property
@@ -100,9 +100,9 @@ class LivePreview:
         wait = max(self.interval, self._cost / PREVIEW_SHARE)
         return not self._broken and time.monotonic() - self._last >= wait
 
-    def _setup(self):
+    def _setup(self) -> tuple[render.Camera, np.ndarray | None, Tracer]:
         p, (w, h) = self.patches, self.size
-        mask = None
+        mask: np.ndarray | None = None
         if self.scene.camera:
             cam = render.camera_from_dict(self.scene.camera, w, h)
         elif _is_floor_plan(p):
@@ -146,7 +146,7 @@ class BarrierDisplay:
     def __init__(self, assemble_b, curve: "ErrorCurve", preview: LivePreview, count):
         self.assemble_b, self.curve, self.preview, self.count = assemble_b, curve, preview, count
         self.seconds = 0.0  #: s of display work (assembly, curve, previews)
-        self._slot = None
+        self._slot: tuple[float, int, np.ndarray] | None = None  # (elapsed, barrier, values)
         self._closed = False
         self._cv = threading.Condition()
         self._thread = threading.Thread(target=self._loop, name="barrier-display", daemon=True)
