@@ -164,10 +164,10 @@ def _openness(tracer, normals, axis, offsets, lo, hi, samples, depth, rng) -> np
     pu = lo[u] + (gu.ravel() + rng.random(nu * nv)) / nu * (hi[u] - lo[u])
     pv = lo[v] + (gv.ravel() + rng.random(nu * nv)) / nv * (hi[v] - lo[v])
     c, g = len(offsets), nu * nv
-    org = np.empty((c, g, 3))
-    org[:, :, axis] = np.asarray(offsets)[:, None]
-    org[:, :, u], org[:, :, v] = pu, pv
-    org = org.reshape(-1, 3)
+    grid = np.empty((c, g, 3))
+    grid[:, :, axis] = np.asarray(offsets)[:, None]
+    grid[:, :, u], grid[:, :, v] = pu, pv
+    org = grid.reshape(-1, 3)
     blocked = np.ones(len(org), bool)
     for sign in (1.0, -1.0):
         d = np.zeros_like(org)
@@ -467,13 +467,13 @@ def clip(patches: Patches, part: Partition) -> list[tuple[Patches, np.ndarray]]:
         for a in range(3):
             P, cnt = _clip_plane(P, cnt, a, 1.0, lo[a])
             P, cnt = _clip_plane(P, cnt, a, -1.0, hi[a])
-        pieces, owner = [], []
+        fan_pieces, fan_owner = [], []
         for j in range(1, P.shape[1] - 1):  # fan (0, j, j + 1)
             ok = j + 1 < cnt
-            pieces.append(np.stack([P[ok, 0], P[ok, j], P[ok, j + 1]], axis=1))
-            owner.append(cut[ok])
-        pieces = np.concatenate(pieces) if pieces else np.zeros((0, 3, 3))
-        owner = np.concatenate(owner).astype(np.int64) if owner else np.zeros(0, np.int64)
+            fan_pieces.append(np.stack([P[ok, 0], P[ok, j], P[ok, j + 1]], axis=1))
+            fan_owner.append(cut[ok])
+        pieces = np.concatenate(fan_pieces) if fan_pieces else np.zeros((0, 3, 3))
+        owner = np.concatenate(fan_owner).astype(np.int64) if fan_owner else np.zeros(0, np.int64)
         big = triangle_areas(pieces) > min_area
         pieces, owner = pieces[big], owner[big]
         keep = np.flatnonzero(inside)
