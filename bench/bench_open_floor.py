@@ -18,39 +18,8 @@ import numpy as np
 from dcrad.config import DivideConfig, SolverConfig
 from dcrad.divide import solve_divided
 from dcrad.energy import rms_error
-from dcrad.patches import Patches
 from dcrad.solve import Solver
-
-
-def square(z: float, cells: int, flip: bool):
-    g = np.linspace(0.0, 1.0, cells + 1)
-    x, y = np.meshgrid(g, g, indexing="ij")
-    v = np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], axis=1)
-    i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
-    a = (i * (cells + 1) + j).ravel()
-    b, c, d = a + cells + 1, a + cells + 2, a + 1
-    f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
-    return v, (f[:, [0, 2, 1]] if flip else f)
-
-
-def open_floor(n: int):
-    vf, ff = square(0.0, n, False)
-    vl, fl = square(1.0, 4, True)
-    faces = np.concatenate([ff, fl + len(vf)])
-    floor = np.arange(len(faces)) < len(ff)
-    rho = np.where(floor[:, None], 0.7, 0.0) * np.ones(3)
-    emission = np.where(floor[:, None], 0.0, 10.0) * np.ones(3)
-    return Patches(np.concatenate([vf, vl]), faces, rho, emission, np.arange(len(faces)),
-                   (~floor).astype(np.int32), ["floor", "light"]), floor
-
-
-def point_to_square(x, y, h=1.0):
-    """Form factor from a floor point (x, y) facing up to the unit square at height h facing down."""
-    def corner(a, b):
-        X, Y = a / h, b / h
-        sx, sy = np.sqrt(1 + X * X), np.sqrt(1 + Y * Y)
-        return (X / sx * np.arctan(Y / sx) + Y / sy * np.arctan(X / sy)) / (2 * np.pi)
-    return sum(corner(a, b) for a in (x, 1 - x) for b in (y, 1 - y))
+from scenes.open_floor import open_floor, point_to_square
 
 
 def main(argv=None) -> int:

@@ -11,6 +11,7 @@ from dcrad.divide import DivideConfig, solve_divided
 from dcrad.energy import rms_error
 from dcrad.pipeline import prepare
 from dcrad.solve import Solver
+from scenes.open_floor import open_floor, point_to_square
 
 
 @pytest.fixture(scope="module")
@@ -155,41 +156,6 @@ def test_adaptive_direction_bins_cost_less_for_the_same_accuracy(office, referen
     assert on[4] < 1.1 * off[4], (on[4], off[4])
 
 
-def _open_floor(n: int = 20):
-    """A 1 x 1 m floor (rho 0.7, n x n squares) under a 1 x 1 m light (E = 10 W/m^2) 1 m above it,
-    nothing else: every boundary of a partition crosses open space."""
-    from dcrad.patches import Patches
-
-    def square(z, cells, flip):
-        g = np.linspace(0.0, 1.0, cells + 1)
-        x, y = np.meshgrid(g, g, indexing="ij")
-        v = np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], axis=1)
-        i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
-        a = (i * (cells + 1) + j).ravel()
-        b, c, d = a + cells + 1, a + cells + 2, a + 1
-        f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
-        return v, (f[:, [0, 2, 1]] if flip else f)
-
-    vf, ff = square(0.0, n, False)  # faces up
-    vl, fl = square(1.0, 4, True)  # faces down
-    faces = np.concatenate([ff, fl + len(vf)])
-    floor = np.arange(len(faces)) < len(ff)
-    rho = np.where(floor[:, None], 0.7, 0.0) * np.ones(3)
-    emission = np.where(floor[:, None], 0.0, 10.0) * np.ones(3)
-    return Patches(np.concatenate([vf, vl]), faces, rho, emission, np.arange(len(faces)),
-                   (~floor).astype(np.int32), ["floor", "light"]), floor
-
-
-def _point_to_square(x, y, h=1.0):
-    """Closed-form form factor from a point (x, y) on the floor, facing up, to the unit square
-    [0,1]^2 at height h facing down: the sum of four corner rectangles (Howell's catalogue, B-3)."""
-    def corner(a, b):
-        X, Y = a / h, b / h
-        sx, sy = np.sqrt(1 + X * X), np.sqrt(1 + Y * Y)
-        return (X / sx * np.arctan(Y / sx) + Y / sy * np.arctan(X / sy)) / (2 * np.pi)
-    return sum(corner(a, b) for a in (x, 1 - x) for b in (y, 1 - y))
-
-
 def test_open_floor_divided_matches_unsplit_and_the_closed_form():
     """Binned twins lose light where a boundary crosses open space (re-emitted within a bin, a
     ray that crossed a plane at a grazing angle leaves it up to 29 degrees off, toward the
@@ -199,24 +165,24 @@ def test_open_floor_divided_matches_unsplit_and_the_closed_form():
     this compares the division, not the gather.  The per-patch RMS error against the closed
     form varies by +-8% from seed to seed here, so it is averaged over three."""
     g = (np.arange(200) + 0.5) / 200
-    exact_mean = 0.7 * 10.0 * _point_to_square(*np.meshgrid(g, g)).mean()  # 1.3988
+    exact_mean = 0.7 * 10.0 * point_to_square(*np.meshgrid(g, g)).mean()  # 1.3988
 
     def floor_stats(p, floor):
         mean = np.average(p.radiosity[floor, 0], weights=p.area[floor])
         c = p.centroid[floor]
-        truth = 0.7 * 10.0 * _point_to_square(c[:, 0], c[:, 1])
+        truth = 0.7 * 10.0 * point_to_square(c[:, 0], c[:, 1])
         return mean, rms_error(p.radiosity[floor, :1], truth[:, None], p.area[floor])
 
     assert DivideConfig().mode == "exact"
     e1, e16 = [], []
     for seed in (5, 6, 7):
         cfg = SolverConfig(tol=1e-3, rays_per_power=1e6, seed=seed, direct=False)
-        p, floor = _open_floor()
+        p, floor = open_floor()
         Solver(p, cfg).run()
         m1, e = floor_stats(p, floor)
         e1.append(e)
         assert abs(m1 - exact_mean) < 0.01 * exact_mean, (m1, exact_mean)
-        q, _ = _open_floor()
+        q, _ = open_floor()
         run, subs, boundaries, part = solve_divided(q, cfg, DivideConfig(subscenes=16))
         assert len(subs) == 16 and run.ledger.imported.sum() > 0 and max(run.barrier_closures) < 1e-10
         m16, e = floor_stats(q, floor)
@@ -224,7 +190,7 @@ def test_open_floor_divided_matches_unsplit_and_the_closed_form():
         assert abs(m16 - m1) < 0.01 * m1 and abs(m16 - exact_mean) < 0.01 * exact_mean, (m16, m1, exact_mean)
     assert np.mean(e16) < 1.1 * np.mean(e1), (e16, e1)  # RMS error per patch against the closed form
     # the paper's binned twins, same cut: the bias this test guards against
-    b, _ = _open_floor()
+    b, _ = open_floor()
     solve_divided(b, cfg, DivideConfig(subscenes=16, mode="binned"))
     mb, _ = floor_stats(b, floor)
     assert mb < 0.95 * exact_mean, (mb, exact_mean)
