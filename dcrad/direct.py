@@ -45,6 +45,7 @@ import numpy as np
 from .patches import Patches
 from .rays import Tracer
 from .sampling import lattice, triangle_points
+from .shoot import Tally
 
 __all__ = ["DirectTally", "gather_direct", "shadow_rays_for", "noise_against_shooting", "landing_rays",
            "rescale_to_landed", "merge", "PILOT_SHARE", "GATHER_MARGIN"]
@@ -69,22 +70,13 @@ def shadow_rays_for(rays_per_power: float, patches: int) -> int:
 
 
 @dataclass
-class DirectTally:
-    """What a gather did, shaped like ``shoot.Tally`` for ``Solver.commit``."""
+class DirectTally(Tally):
+    """What a gather did: a ``shoot.Tally`` (so ``Solver.commit`` books it alike) whose
+    ``received_a`` is always set (half A's samples) and whose ``escaped`` is Phi - sum of
+    received (``rescale_to_landed``: the emitter rays' own), plus the shadow rays traced."""
 
-    received: np.ndarray  #: (k,3) W on the front of the patches ``hit``
-    hit: np.ndarray  #: (k,) distinct patch indices
-    received_a: np.ndarray  #: (k,3) W of ``received`` from half A's samples
-    escaped: np.ndarray  #: (3,) W: Phi - sum of received (``rescale_to_landed``: the emitter rays' escaped)
-    back_faces: np.ndarray
-    back_by_obj: np.ndarray
-    portal: np.ndarray
-    portal_prim: np.ndarray
-    portal_t: np.ndarray
-    landed: np.ndarray
-    kept: np.ndarray
-    lost: np.ndarray
-    rays: int  #: shadow rays traced
+    received_a: np.ndarray  #: (k,3) W of ``received`` from half A's samples (never None here)
+    rays: int = 0  #: shadow rays traced
 
 
 #: light groups (emitting objects) chosen per receiver by importance; more fall back to power alone
@@ -146,9 +138,9 @@ def gather_direct(patches: Patches, tracer: Tracer, emitters: np.ndarray, power:
         receivers = np.flatnonzero(patches.rho.any(axis=1))
     if phi <= 0 or len(receivers) == 0:
         z = np.zeros(3)
-        return DirectTally(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3)), power.sum(axis=0), z.copy(),
+        return DirectTally(np.zeros((0, 3)), np.zeros(0, np.int64), power.sum(axis=0), z.copy(),
                            np.zeros(patches.n_objects), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0),
-                           z.copy(), z.copy(), np.abs(power).sum(axis=0), 0)
+                           z.copy(), z.copy(), np.abs(power).sum(axis=0), np.zeros((0, 3)), 0)
     colour = power / np.maximum(total, 1e-300)[:, None]  # E_c / E of each emitter
     gid, phi_g, centre, spread, normal = _light_groups(patches, emitters, total)
     n_groups = len(phi_g)
@@ -213,10 +205,10 @@ def gather_direct(patches: Patches, tracer: Tracer, emitters: np.ndarray, power:
     landed_power = got.sum(axis=0)
     escaped = power.sum(axis=0) - landed_power
     magnitude = np.abs(got)
-    return DirectTally(got, receivers[keep], received_a[keep], escaped, np.zeros(3), np.zeros(patches.n_objects),
+    return DirectTally(got, receivers[keep], escaped, np.zeros(3), np.zeros(patches.n_objects),
                        np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
                        (magnitude * patches.rho[receivers[keep]]).sum(axis=0), np.abs(escaped),
-                       int(len(receivers) * s))
+                       received_a[keep], int(len(receivers) * s))
 
 
 def _scatter(into: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
@@ -265,9 +257,9 @@ def rescale_to_landed(gathered: DirectTally, shot, patches: Patches) -> DirectTa
     received = gathered.received * scale
     received_a = gathered.received_a * scale
     magnitude = np.abs(received)
-    return DirectTally(received, gathered.hit, received_a, shot.escaped, shot.back_faces, shot.back_by_obj,
+    return DirectTally(received, gathered.hit, shot.escaped, shot.back_faces, shot.back_by_obj,
                        gathered.portal, gathered.portal_prim, gathered.portal_t, magnitude.sum(axis=0),
-                       (magnitude * patches.rho[gathered.hit]).sum(axis=0), shot.lost, gathered.rays)
+                       (magnitude * patches.rho[gathered.hit]).sum(axis=0), shot.lost, received_a, gathered.rays)
 
 
 def merge(a: DirectTally, b: DirectTally, patches: Patches) -> DirectTally:
@@ -277,7 +269,7 @@ def merge(a: DirectTally, b: DirectTally, patches: Patches) -> DirectTally:
     order = np.argsort(hit, kind="stable")
     received = np.concatenate([a.received, b.received])[order]
     magnitude = np.abs(received)
-    return DirectTally(received, hit[order], np.concatenate([a.received_a, b.received_a])[order],
-                       a.escaped + b.escaped, a.back_faces + b.back_faces, a.back_by_obj + b.back_by_obj,
-                       a.portal, a.portal_prim, a.portal_t, magnitude.sum(axis=0),
-                       (magnitude * patches.rho[hit[order]]).sum(axis=0), a.lost + b.lost, a.rays + b.rays)
+    return DirectTally(received, hit[order], a.escaped + b.escaped, a.back_faces + b.back_faces,
+                       a.back_by_obj + b.back_by_obj, a.portal, a.portal_prim, a.portal_t, magnitude.sum(axis=0),
+                       (magnitude * patches.rho[hit[order]]).sum(axis=0), a.lost + b.lost,
+                       np.concatenate([a.received_a, b.received_a])[order], a.rays + b.rays)
