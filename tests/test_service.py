@@ -103,22 +103,29 @@ def test_two_workers_reproduce_the_in_process_solution(office, in_process, tmp_p
     assert {"preview.png", "preview.exr", "scene.glb", "patches.ply"} <= set(files)
 
 
+def run_killing_at_first_barrier(cluster, folder, name, solver, divide, cell=0):
+    """Submit a job, kill the worker that holds ``cell`` once the first barrier is reported,
+    and watch it to the end: (the last progress, the fetched files, [killed worker],
+    [the worker of every subscene at barrier 1])."""
+    job = submit(cluster.address, folder, name, solver, divide)
+    killed, placed = [], []
+
+    def on_progress(pr):
+        if pr.barrier == 1 and not killed and pr.job.state == "running":
+            placed.extend(s.worker for s in pr.subscenes)
+            victim = next(s.worker for s in pr.subscenes if s.cell == cell)
+            cluster.kill_worker(cluster.worker_ports.index(int(victim.rsplit(":", 1)[1])))
+            killed.append(victim)
+
+    progress = watch(cluster.address, job.job_id, on_progress)
+    return progress[-1], fetch(cluster.address, job.job_id), killed, placed
+
+
 def test_killed_worker_resumes_from_the_last_checkpoint(office, in_process, tmp_path):
     with LocalCluster(workers=3, data=tmp_path) as cluster:
-        job = submit(cluster.address, office, "office.obj", {"tol": 0.005, "seed": 3}, {"subscenes": 2})
-        killed = []
-
-        def on_progress(p):
-            # after the first barrier, kill the worker that holds cell 0
-            if p.barrier == 1 and not killed and p.job.state == "running":
-                victim = next(s.worker for s in p.subscenes if s.cell == 0)
-                i = cluster.worker_ports.index(int(victim.rsplit(":", 1)[1]))
-                cluster.kill_worker(i)
-                killed.append(victim)
-
-        progress = watch(cluster.address, job.job_id, on_progress)
-        files = fetch(cluster.address, job.job_id)
-    final = progress[-1]
+        # after the first barrier, kill the worker that holds cell 0
+        final, files, killed, _ = run_killing_at_first_barrier(
+            cluster, office, "office.obj", {"tol": 0.005, "seed": 3}, {"subscenes": 2})
     assert killed and final.job.state == "done", final.job.error
     cell0 = next(s for s in final.subscenes if s.cell == 0)
     assert cell0.reassigned >= 1 and cell0.worker != killed[0]
@@ -135,19 +142,8 @@ def test_over_decomposed_job_survives_a_killed_worker(office, tmp_path):
     _, p, _ = prepare(office / "office.obj")
     run, *_ = solve_divided(p, SolverConfig(tol=0.005, seed=3), DivideConfig(subscenes=4))
     with LocalCluster(workers=2, data=tmp_path) as cluster:
-        job = submit(cluster.address, office, "office.obj", {"tol": 0.005, "seed": 3}, {"subscenes": 4})
-        killed, placed = [], []
-
-        def on_progress(pr):
-            if pr.barrier == 1 and not killed and pr.job.state == "running":
-                placed.extend(s.worker for s in pr.subscenes)
-                victim = pr.subscenes[0].worker
-                cluster.kill_worker(cluster.worker_ports.index(int(victim.rsplit(":", 1)[1])))
-                killed.append(victim)
-
-        progress = watch(cluster.address, job.job_id, on_progress)
-        files = fetch(cluster.address, job.job_id)
-    final = progress[-1]
+        final, files, killed, placed = run_killing_at_first_barrier(
+            cluster, office, "office.obj", {"tol": 0.005, "seed": 3}, {"subscenes": 4})
     assert killed and final.job.state == "done", final.job.error
     assert len(placed) == 4 and len(set(placed)) == 2  # over-decomposed: two subscenes per worker
     assert {s.worker for s in final.subscenes} == set(placed) - set(killed)  # one survivor holds all
@@ -166,18 +162,8 @@ def test_stiff_job_overshoots_across_workers_and_survives_a_kill(tmp_path):
     run, subs, *_ = solve_divided(p, SolverConfig(tol=0.01, seed=4), DivideConfig(subscenes=2), record=False)
     assert run.stopped_by == "tolerance" and all(s.plan is not None and s.plan.stiffness.scale.any() for s in subs)
     with LocalCluster(workers=3, data=tmp_path / "data") as cluster:
-        job = submit(cluster.address, folder, "furnace.obj", {"tol": 0.01, "seed": 4}, {"subscenes": 2})
-        killed = []
-
-        def on_progress(pr):
-            if pr.barrier == 1 and not killed and pr.job.state == "running":
-                victim = next(s.worker for s in pr.subscenes if s.cell == 1)
-                cluster.kill_worker(cluster.worker_ports.index(int(victim.rsplit(":", 1)[1])))
-                killed.append(victim)
-
-        progress = watch(cluster.address, job.job_id, on_progress)
-        files = fetch(cluster.address, job.job_id)
-    final = progress[-1]
+        final, files, killed, _ = run_killing_at_first_barrier(
+            cluster, folder, "furnace.obj", {"tol": 0.01, "seed": 4}, {"subscenes": 2}, cell=1)
     assert killed and final.job.state == "done", final.job.error
     assert next(s for s in final.subscenes if s.cell == 1).reassigned >= 1
     assert final.barrier == run.barriers and final.ledger.closure < 1e-10
