@@ -269,6 +269,11 @@ class Job:
                 self._waiters.remove((loop, ev))
 
 
+def _record_fields(obj: Job | JobRecord) -> dict:
+    """The ``JobRecord`` fields of a job or a record (a Job holds every one of them)."""
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(JobRecord)}
+
+
 def solver_config(s: pb.SolverSettings) -> SolverConfig:
     """The job's SolverConfig: every field the client set, defaults for the rest (``dcrad.settings``)."""
     return from_pb(SolverConfig, s)
@@ -309,9 +314,7 @@ class JobManager:
     # == durability (coordinator.store) ============================================
     def _save(self, job: Job) -> None:
         """Write the job's record (atomically); a failing disk is logged, never fatal."""
-        rec = JobRecord(id=job.id, spec=job.spec, state=job.state, error=job.error, created=job.created,
-                        started=job.started, finished=job.finished, subscenes=job.subscenes,
-                        residual=job.residual, divide=job.divide)
+        rec = JobRecord(**_record_fields(job))
         try:
             self.store.save(rec)
         except OSError as exc:
@@ -344,9 +347,7 @@ class JobManager:
         """Every job under the data folder: ended ones are listed and fetchable; the others
         resume from their last checkpointed barrier (or start over) once workers register."""
         for rec in self.store.load_all():
-            job = Job(id=rec.id, spec=rec.spec, root=self.store.folder(rec.id), state=rec.state,
-                      error=rec.error, created=rec.created, started=rec.started, finished=rec.finished,
-                      subscenes=rec.subscenes, residual=rec.residual, divide=rec.divide)
+            job = Job(root=self.store.folder(rec.id), **_record_fields(rec))
             self.jobs[job.id] = job
             if rec.state in TERMINAL:
                 report = job.root / "out" / "report.json"
@@ -482,6 +483,7 @@ class JobManager:
                 return assemble(len(patches), patches.area, parents, pieces, np.split(values, splits))
 
             display = BarrierDisplay(assemble_b, job.curve, job.preview, self.count)
+            accuracy = resolve(config).accuracy  # the target every Progress reports (fixed for the job)
 
             def on_barrier(run):
                 writer.submit(run.barriers, {h.cell: h.checkpoint for h in handles}, time.time() - job.started)
@@ -489,7 +491,7 @@ class JobManager:
                 job.residual = run.ledger.residual()
                 job.workers = sorted({h.worker.address for h in handles})
                 # the live estimate over the clipped pieces (same area; no assembly here)
-                progress = self._progress(job, run, handles, values, piece_area)
+                progress = self._progress(job, run, handles, values, piece_area, accuracy)
                 job.updates.append(progress)
                 display.offer(progress.job.elapsed_s, run.barriers, values)
                 now = {"rays": progress.rays, "bytes_relayed": progress.bytes_relayed}
@@ -569,7 +571,7 @@ class JobManager:
                 "measured": None if measured is None else {"label": job.curve.label,
                                                            "points": [list(m) for m in measured]}}
 
-    def _progress(self, job: Job, run, handles, b: np.ndarray, area: np.ndarray) -> pb.Progress:
+    def _progress(self, job: Job, run, handles, b: np.ndarray, area: np.ndarray, accuracy: float) -> pb.Progress:
         snap = run.snapshots[-1]
         subs = []
         for h, st in zip(handles, run.states):
@@ -580,10 +582,9 @@ class JobManager:
                                             shots=st.shots, rays=st.rays, residual=res,
                                             twin_bytes=st.twin_bytes, reassigned=h.reassigned))
         est = run.estimate  # the noise-aware estimate (dcrad.noise), from every subscene's sums
-        rules = resolve(solver_config(job.spec.solver))
         return pb.Progress(job=job.summary(), barrier=run.barriers, shots=snap.shots, rays=snap.rays,
                            rms_estimate=float(est.rms) if est is not None
                            else residual_estimate(snap.residual, b, area),
-                           error=estimate_to_pb(est) if est is not None else None, accuracy=rules.accuracy,
+                           error=estimate_to_pb(est) if est is not None else None, accuracy=accuracy,
                            ledger=ledger_to_pb(run.ledger), subscenes=subs,
                            bytes_relayed=sum(h.bytes_relayed for h in handles))

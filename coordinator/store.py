@@ -39,7 +39,7 @@ import shutil
 import threading
 import time
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TypedDict
 
@@ -112,10 +112,8 @@ class JobRecord:
     divide: dict | None = None
 
     def to_json(self) -> bytes:
-        d = {"version": VERSION, "id": self.id, "state": self.state, "error": self.error,
-             "created": self.created, "started": self.started, "finished": self.finished,
-             "subscenes": self.subscenes, "residual": self.residual, "divide": self.divide,
-             "spec": base64.b64encode(self.spec.SerializeToString()).decode("ascii")}
+        plain = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "spec"}
+        d = {"version": VERSION, **plain, "spec": base64.b64encode(self.spec.SerializeToString()).decode("ascii")}
         return json.dumps(d, indent=1).encode()
 
     @classmethod
