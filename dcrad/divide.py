@@ -458,9 +458,8 @@ def job_estimate(states: list[SubsceneState], led: Ledger) -> Estimate | None:
         return None
     sums = sum((s.noise for s in states if s.noise is not None), NoiseSums())
     tallies = sum((s.tallies for s in states), np.zeros((4, 3)))
-    held = np.maximum(led.unshot_abs, np.abs(led.unshot)) + np.maximum(led.in_flight_abs, np.abs(led.in_flight))
     mean_rho = sums.rho1 / max(sums.area, 1e-300)  # stands in for lambda before the first shot
-    return combine(sums, bias_ambient(tallies, held, sums.area, mean_rho))
+    return combine(sums, bias_ambient(tallies, led.held(), sums.area, mean_rho))
 
 
 @dataclass(frozen=True)

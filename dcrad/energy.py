@@ -70,6 +70,10 @@ class Ledger:
         flight = np.maximum(self.in_flight_abs, np.abs(self.in_flight))
         return float((unshot.sum() + flight.sum()) / total)
 
+    def held(self) -> np.ndarray:
+        """(3,) W still to move: the unshot and in-flight magnitudes (as in ``residual``), per channel."""
+        return np.maximum(self.unshot_abs, np.abs(self.unshot)) + np.maximum(self.in_flight_abs, np.abs(self.in_flight))
+
     def __iadd__(self, other: "Ledger") -> "Ledger":
         for name in ACCOUNTS + MAGNITUDES:
             setattr(self, name, getattr(self, name) + getattr(other, name))

@@ -11,8 +11,6 @@ blend is a solution whose books close and whose estimate is that of the blend.
 
 from __future__ import annotations
 
-import numpy as np
-
 from .accuracy import MAX_PASSES, pass_target
 from .config import SolverConfig
 from .energy import ACCOUNTS, MAGNITUDES
@@ -39,7 +37,7 @@ def blend(solver, saved: dict, weight_saved: float, weight_now: float) -> None:
     solver.noise.diff = a * saved["diff"] + b * solver.noise.diff
     solver.noise.unshot = a * saved["diff_unshot"] + b * solver.noise.unshot
     for name in ACCOUNTS + MAGNITUDES:
-        setattr(led, name, a * saved["ledger"][name] + b * getattr(led, name))
+        setattr(led, name, a * getattr(saved["ledger"], name) + b * getattr(led, name))
     solver.tallies = a * saved["tallies"] + b * solver.tallies
     solver.recount()  # |dB| sums are not linear: recount them from the blended table
     solver.noise.resync(p)
@@ -50,7 +48,7 @@ def _save(solver) -> dict:
     p = solver.patches
     return {"radiosity": p.radiosity.copy(), "unshot": p.unshot.copy(), "diff": solver.noise.diff.copy(),
             "diff_unshot": solver.noise.unshot.copy(), "tallies": solver.tallies.copy(),
-            "ledger": {k: np.array(v, np.float64) for k, v in solver.ledger.as_arrays().items()}}
+            "ledger": solver.ledger.copy()}
 
 
 def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=None, should_stop=None):

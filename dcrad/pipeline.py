@@ -217,14 +217,14 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
     choices = []
     if patches.is_grey and len(patches):
         choices.append(GREY_CHOICE)
+    delivered = sum(s.twins_delivered for s in states)
+    blocks = sum(s.twin_blocks for s in states)
+    # dense: a sent and a pending buffer for each crossing of every portal cell and bin
+    dense = dense_twin_bytes(boundaries) if divide.mode == "binned" else None
     if divide.mode == "binned":
-        # dense: a sent and a pending buffer for each crossing of every portal cell and bin
-        dense = dense_twin_bytes(boundaries)
         choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
                        f"against {dense} bytes dense (sent and pending, every portal cell, bin "
                        f"and crossing)")
-        delivered = sum(s.twins_delivered for s in states)
-        blocks = sum(s.twin_blocks for s in states)
         if config.adaptive_bins and delivered:
             choices.append(f"directional resolution where the energy is: {delivered} twin entries "
                            f"arrived, kept as {blocks} direction blocks (light weaker than one ray "
@@ -240,9 +240,7 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
                "barrier_batches": f"adaptive, at most {divide.max_iterations}" if divide.adaptive
                else divide.iterations, "solid": divide.solid,
                "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
-               "twins_delivered": sum(s.twins_delivered for s in states),
-               "twin_blocks": sum(s.twin_blocks for s in states),
-               "dense_twin_bytes": dense_twin_bytes(boundaries) if divide.mode == "binned" else None,
+               "twins_delivered": delivered, "twin_blocks": blocks, "dense_twin_bytes": dense,
                "partition": part.as_dict()}
     choices.append(describe(config))
     if run.stopped_by == "noise_floor":

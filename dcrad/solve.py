@@ -421,10 +421,8 @@ class Solver:
 
     def estimate(self) -> Estimate:
         """The estimated RMS error of B now: noise and unshot bias (noise.py); O(1)."""
-        led = self.ledger
-        held = np.maximum(led.unshot_abs, np.abs(led.unshot)) + np.maximum(led.in_flight_abs, np.abs(led.in_flight))
         p = self.patches
-        return combine(self.noise.sums(), bias_ambient(self.tallies, held, p.total_area, p.mean_rho))
+        return combine(self.noise.sums(), bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho))
 
     def snapshot(self, force: bool = False) -> None:
         """Record a snapshot when the ray count passed the next geometric mark."""
