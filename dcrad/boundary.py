@@ -487,17 +487,48 @@ class RayParcel:
     """Exact forwarding: crossing rays kept whole (no angular or spatial blur).
 
     boundary (m,) i8, origins (m,3) f8 on the plane, dirs (m,3) f8 unit, power (m,3) f8 W.
-    Memory grows with the rays: 64 bytes each.
+    Memory grows with the rays: 80 bytes each.
+
+    Rays are recorded a batch at a time and continued a batch at a time, so
+    ``add``/``merge`` keep the new rays as a separate part (joined once, when the
+    arrays are read) and ``take_front`` hands out the first rays as a slice: a
+    batch costs O(its own rays), not O(rays held) (joining on every add made
+    recording a barrier's crossings quadratic in them).
     """
 
+    _FIELDS = ("boundary", "origins", "dirs", "power")
+
     def __init__(self, boundary=None, origins=None, dirs=None, power=None):
-        self.boundary = np.zeros(0, np.int64) if boundary is None else np.asarray(boundary, np.int64)
-        self.origins = np.zeros((0, 3)) if origins is None else np.asarray(origins, np.float64)
-        self.dirs = np.zeros((0, 3)) if dirs is None else np.asarray(dirs, np.float64)
-        self.power = np.zeros((0, 3)) if power is None else np.asarray(power, np.float64)
+        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = [(
+            np.zeros(0, np.int64) if boundary is None else np.asarray(boundary, np.int64),
+            np.zeros((0, 3)) if origins is None else np.asarray(origins, np.float64),
+            np.zeros((0, 3)) if dirs is None else np.asarray(dirs, np.float64),
+            np.zeros((0, 3)) if power is None else np.asarray(power, np.float64))]
+        self._n = len(self._parts[0][0])
+
+    def _joined(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        if len(self._parts) > 1:
+            self._parts = [tuple(np.concatenate(col) for col in zip(*self._parts))]  # type: ignore[list-item]
+        return self._parts[0]
+
+    @property
+    def boundary(self) -> np.ndarray:
+        return self._joined()[0]
+
+    @property
+    def origins(self) -> np.ndarray:
+        return self._joined()[1]
+
+    @property
+    def dirs(self) -> np.ndarray:
+        return self._joined()[2]
+
+    @property
+    def power(self) -> np.ndarray:
+        return self._joined()[3]
 
     def __len__(self) -> int:
-        return len(self.boundary)
+        return self._n
 
     def total(self) -> np.ndarray:
         return self.power.sum(axis=0) if len(self) else np.zeros(3)
@@ -506,7 +537,7 @@ class RayParcel:
         return np.abs(self.power).sum(axis=0) if len(self) else np.zeros(3)
 
     def nbytes(self) -> int:
-        return int(self.boundary.nbytes + self.origins.nbytes + self.dirs.nbytes + self.power.nbytes)
+        return int(sum(a.nbytes for part in self._parts for a in part))
 
     def add(self, boundary, origins, dirs, power) -> None:
         self.merge(RayParcel(np.broadcast_to(boundary, (len(origins),)), origins, dirs, power))
@@ -514,25 +545,39 @@ class RayParcel:
     def merge(self, other: "RayParcel") -> None:
         if len(other) == 0:
             return
-        self.boundary = np.concatenate([self.boundary, other.boundary])
-        self.origins = np.concatenate([self.origins, other.origins])
-        self.dirs = np.concatenate([self.dirs, other.dirs])
-        self.power = np.concatenate([self.power, other.power])
+        if self._n == 0:
+            self._parts = list(other._parts)
+        else:
+            self._parts.extend(other._parts)
+        self._n += len(other)
+
+    def take_front(self, m: int) -> "RayParcel":
+        """Remove the first ``m`` rays and return them (copies; the rest stays a slice)."""
+        b, o, d, p = self._joined()
+        m = min(int(m), self._n)
+        out = RayParcel(b[:m].copy(), o[:m].copy(), d[:m].copy(), p[:m].copy())
+        self._parts = [(b[m:], o[m:], d[m:], p[m:])]
+        self._n -= m
+        return out
 
     def take(self, index) -> "RayParcel":
         """Remove the rays at ``index`` (positions) and return them."""
+        b, o, d, p = self._joined()
         keep = np.ones(len(self), bool)
         keep[index] = False
-        out = RayParcel(self.boundary[index], self.origins[index], self.dirs[index], self.power[index])
-        self.boundary, self.origins = self.boundary[keep], self.origins[keep]
-        self.dirs, self.power = self.dirs[keep], self.power[keep]
+        out = RayParcel(b[index], o[index], d[index], p[index])
+        self._parts = [(b[keep], o[keep], d[keep], p[keep])]
+        self._n = int(keep.sum())
         return out
 
     def drain(self) -> "RayParcel":
-        return self.take(np.arange(len(self)))
+        out = RayParcel(*self._joined())
+        self._parts = RayParcel()._parts
+        self._n = 0
+        return out
 
     def to_arrays(self) -> dict:
-        return {"boundary": self.boundary, "origins": self.origins, "dirs": self.dirs, "power": self.power}
+        return dict(zip(self._FIELDS, self._joined()))
 
     @classmethod
     def from_arrays(cls, d: dict) -> "RayParcel":

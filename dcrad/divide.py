@@ -33,6 +33,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from .accuracy import by_accuracy, noise_floor, residual_goal, resolve
+from .arrays import colsum, take_rows
 from .boundary import (
     Boundary,
     RayParcel,
@@ -50,6 +51,7 @@ from .partition import clip, partition
 from .patches import Patches
 from .rays import Tracer
 from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
+from .shooters import spatial_order
 from .snapshots import SnapshotStore
 from .solve import Snapshot, Solver, Stiffness, stiffness
 
@@ -170,6 +172,10 @@ class Subscene(Solver):
         self._solid_of = np.ones(max((b.id for b in self.boundaries), default=0) + 1, np.int64)  #: by boundary id
         for b in self.boundaries:
             self._solid_of[b.id] = b.solid
+        #: (3 held buffers: sent, pending, forward; 3) W, signed and magnitude sums of what each holds:
+        #: counted exactly at barriers (``_book_in_flight``), kept from each batch's moves in between
+        self._held_sum = np.zeros((3, 3))
+        self._held_abs = np.zeros((3, 3))
 
     def stiffness(self) -> Stiffness:
         """The job's stiffness, estimated by ``run_divided`` at the barrier (none before)."""
@@ -188,22 +194,48 @@ class Subscene(Solver):
 
     # == sources: patches and outgoing twins, one ranking ========================
     def select_all(self):
-        """Patches and outgoing twins ranked together by power:
-        (idx, counts, power (k,3) W, amounts of the patch shooters, the pending entries)."""
+        """Patches and outgoing twins ranked together by power.
+
+        Returns (rows, counts, power (k,3) W, amounts (k,3) W/m^2) of the patch shooters,
+        in spatial order (``shooters.spatial_order``: coherent rays, as ``Solver.select``),
+        and (positions, counts, power) of the twin entries shot, with the pending entries.
+
+        The patch candidates come from the shooter pool (``Solver.select``: the top K
+        without a pass over all patches); while overshooting every amount moves with
+        the ambient term, so the whole table is ranked, as a single solver does.
+        """
         p = self.patches
+        cfg = self.config
         st = self.stiffness()
-        amounts = self.shoot_amounts(st)
-        entries = self.pending.entries()
-        t_power = entries[4]
-        power = np.concatenate([amounts * p.area[:, None], t_power.reshape(-1, 3)])
+        entries = self.pending.entries() if len(self.pending) else None
+        t_power = entries[4].reshape(-1, 3) if entries is not None else np.zeros((0, 3))
+        n_twins = len(t_power)
+        floor_p = st.min_rays(cfg)
+        if self.full_selection or self.ambient(st).any():
+            rows = np.arange(len(p))
+            amounts = self.shoot_amounts(st)
+        else:
+            # at most batch_rays // floor patches fit in a batch, and at most K + twins are ranked
+            k = max(1, min(cfg.max_shooters + n_twins, cfg.batch_rays // floor_p))
+            rows, pr = self.pool.candidates(k, self._negligible)
+            if len(rows) > k:  # the pool's priorities are rank's: its top k is rank's top k
+                rows = rows[np.sort(np.argpartition(-pr, k - 1)[:k])]
+            amounts = take_rows(p.unshot, rows)
+        p_power = amounts * take_rows(p.area, rows)[:, None]
+        power = np.concatenate([p_power, t_power]) if n_twins else p_power
         # A twin entry is already narrow in direction and position: rays in proportion to
         # its power, at least one (the 32-ray floor is for a patch's whole hemisphere;
         # on an open boundary with 1e5 small entries it multiplied the rays 32-fold)
-        floor = np.concatenate([np.full(len(p), st.min_rays(self.config)), np.ones(len(t_power), np.int64)])
+        floor = np.concatenate([np.full(len(rows), floor_p), np.ones(n_twins, np.int64)]) if n_twins else floor_p
         # twin entries are many and cheap: only the batch's ray budget limits them
-        idx, counts = self.rank(power, floor, self.config.max_shooters + len(t_power), st.ray_factor)
-        patch = idx < len(p)
-        return idx, counts, power[idx], amounts[idx[patch]], entries
+        idx, counts = self.rank(power, floor, cfg.max_shooters + n_twins, st.ray_factor)
+        patch = idx < len(rows)
+        sel = idx[patch]
+        order = spatial_order(p, rows[sel])
+        sel = sel[order]
+        shooters = (rows[sel], counts[patch][order], p_power[sel], amounts[sel])
+        twins = (idx[~patch] - len(rows), counts[~patch], power[idx[~patch]])
+        return shooters, twins, entries
 
     def twin_rays(self, pending, entries: np.ndarray, counts: np.ndarray, power: np.ndarray) -> RayBatch:
         """Rays from outgoing twins: points in the portal cell, directions inside the bin
@@ -235,13 +267,26 @@ class Subscene(Solver):
         return [self.sent, self.pending, self.forward]
 
     def _book_in_flight(self) -> None:
-        held = self._held()
-        self.ledger.in_flight = sum(h.total() for h in held)
-        self.ledger.in_flight_abs = sum(h.total_abs() for h in held)
+        """The in-flight accounts counted from the held buffers (O(held): at barriers)."""
+        for i, h in enumerate(self._held()):
+            self._held_sum[i] = h.total()
+            self._held_abs[i] = h.total_abs()
+        self._in_flight_to_ledger()
+
+    def _in_flight_to_ledger(self) -> None:
+        self.ledger.in_flight = self._held_sum.sum(axis=0)
+        self.ledger.in_flight_abs = self._held_abs.sum(axis=0)
+
+    def _moved(self, i: int, signed: np.ndarray, magnitude: np.ndarray) -> None:
+        """Held buffer i (0 sent, 1 pending, 2 forward) gained ``signed`` W (negative: gave up)."""
+        self._held_sum[i] += signed
+        self._held_abs[i] += magnitude
+        self._in_flight_to_ledger()
 
     def step_forwarded(self) -> int:
         """Exact mode: continue up to batch_rays rays handed over by neighbours."""
-        part = self.forward.take(np.arange(min(len(self.forward), self.config.batch_rays)))
+        part = self.forward.take_front(self.config.batch_rays)
+        self._moved(2, -part.total(), -part.total_abs())
         side = np.ones(len(part))
         for b in self.boundaries:
             sel = part.boundary == b.id
@@ -256,40 +301,33 @@ class Subscene(Solver):
     def crossings(self, batch: RayBatch, tally) -> np.ndarray:
         return self.record_crossings(batch, tally)
 
-    def commit(self, batch: RayBatch, tally, shot=None) -> None:
-        super().commit(batch, tally, shot)
-        self._book_in_flight()
-
     def step(self) -> int:
         if len(self.forward):
             return self.step_forwarded()
-        idx, counts, power, amounts, pending = self.select_all()
-        if len(idx) == 0:
+        (rows, counts, power, amounts), (twin_idx, t_counts, t_power), pending = self.select_all()
+        if len(rows) + len(twin_idx) == 0:
             return 0
         p = self.patches
-        n = len(p)
-        is_patch = idx < n
         t0 = time.perf_counter()
         batches = []
-        if is_patch.any():
-            batches.append(patch_rays(p, idx[is_patch], counts[is_patch], power[is_patch], self.rng,
-                                      self.noise.shot_diff(idx[is_patch], p.area)))
-        twin_idx = idx[~is_patch] - n
+        if len(rows):
+            batches.append(patch_rays(p, rows, counts, power, self.rng, self.noise.shot_diff(rows, p.area)))
         if len(twin_idx):
-            batches.append(self.twin_rays(pending, twin_idx, counts[~is_patch], power[~is_patch]))
+            batches.append(self.twin_rays(pending, twin_idx, t_counts, t_power))
         batch = batches[0] if len(batches) == 1 else RayBatch(
             *(np.concatenate([getattr(b, f) for b in batches])
               for f in ("origins", "dirs", "power", "shooter", "half")))
         tally = self.fire(batch, t0)
 
         # Shooters give up their power (twins leave the pending buffer)
-        self.release(idx[is_patch], amounts)  # keeps the ledger's unshot sums
-        self.noise.shot(idx[is_patch])
+        self.release(rows, amounts)  # keeps the ledger's unshot sums and the shooter pool
+        self.noise.shot(rows)
         if len(twin_idx):
-            self.pending.take(twin_idx)
-        n_patch = len(batches[0]) if is_patch.any() else 0
+            gone = self.pending.take(twin_idx)
+            self._moved(1, -gone.total(), -gone.total_abs())
+        n_patch = len(batches[0]) if len(rows) else 0
         self.commit(batch, tally, shot=batch.power[:n_patch])
-        return self.counted(len(idx), len(batch))
+        return self.counted(len(rows) + len(twin_idx), len(batch))
 
     def record_crossings(self, batch: RayBatch, tally) -> np.ndarray:
         """Store rays that hit a boundary in ``sent``; return power of mis-sided hits (3,) W.
@@ -315,22 +353,32 @@ class Subscene(Solver):
             lost += batch.power[r[~ok]].sum(axis=0)
             r, d, pts = r[ok], d[ok], points[sel][ok]
             if len(r):
-                self.boundary_mode.record(self.sent, b, pts, d, crossing[ok], batch.power[r])
+                pw = take_rows(batch.power, r)
+                self.boundary_mode.record(self.sent, b, pts, d, crossing[ok], pw)
+                if isinstance(self.sent, RayParcel):  # rays are kept whole: the sums just add
+                    self._moved(0, colsum(pw), colsum(np.abs(pw)))
+        if not isinstance(self.sent, RayParcel):  # twins merge by entry: count the buffer
+            self._held_sum[0], self._held_abs[0] = self.sent.total(), self.sent.total_abs()
+            self._in_flight_to_ledger()
         return lost
 
     # == the handle interface used by run_divided ================================
     def local_residual(self) -> float:
         """W this subscene would still shoot now: |shoot amounts| + |pending twins| (absolute).
 
-        Without overshooting the amounts are the unshot power.  With it, a patch
-        that has shot keeps -rho*g parked until the light it anticipated arrives,
-        much of it from the other subscenes at later barriers: that is not work
-        this subscene can do now, so it does not count here.
+        Without overshooting the amounts are the unshot power, whose magnitude the
+        ledger keeps (O(1)).  With it, a patch that has shot keeps -rho*g parked until
+        the light it anticipated arrives, much of it from the other subscenes at later
+        barriers: that is not work this subscene can do now, so it does not count here
+        (and the amounts are summed over the table, as stiff scenes rank it whole).
         """
         p = self.patches
-        pending = (self.pending.total_abs() + self.forward.total_abs()).sum()
-        amounts = self.shoot_amounts(self.stiffness())
-        return float((np.abs(amounts) * p.area[:, None]).sum() + pending)
+        pending = float(self._held_abs[1:].sum())
+        st = self.stiffness()
+        if self.ambient(st).any():
+            amounts = self.shoot_amounts(st)
+            return float((np.abs(amounts) * p.area[:, None]).sum() + pending)
+        return float(self.ledger.unshot_abs.sum()) + pending
 
     def iterate(self, n: int, plan: "BarrierPlan | None" = None) -> int:
         """doIterations: up to n batches; returns rays traced.
@@ -349,6 +397,11 @@ class Subscene(Solver):
         bounded in memory and on the wire.
         """
         self.plan = plan
+        # Exact sums and a fresh shooter pool at every barrier (O(patches) once a barrier):
+        # a subscene resumed from this barrier's checkpoint then continues bit-identically
+        self.pool.invalidate()
+        self.recount()
+        self._book_in_flight()
         rays = 0
         goal = max(self.local_target, 0.25 * self.local_residual()) if self.local_target > 0 else 0.0
         cap = FORWARD_CAP * self.config.batch_rays
@@ -824,4 +877,5 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
             part = {k[len(name) + 1:]: v for k, v in arrays.items() if k.startswith(name + "_")}
             if part:
                 setattr(sub, name, kinds[name].from_arrays(part))
+        sub._book_in_flight()
     return sub
