@@ -1,37 +1,54 @@
-"""Checkpoint cost per barrier: whole checkpoints against the store's incremental files.
+"""Checkpoint cost per barrier: bytes, what changed since the last barrier, and the barrier loop's share.
 
 Runs a divided solve in process (``office:rows=8,cols=8`` by default) and, at every
-barrier, takes each subscene's checkpoint (``checkpoint_arrays``, what a worker sends
-the coordinator) and hands it to a ``coordinator.store.CheckpointWriter``.  Prints, per
-barrier, the bytes of the whole checkpoints, the bytes the writer put on disk, the
-writer's seconds (in its thread) and how long ``submit`` held the barrier loop; then
-reloads the last barrier from disk and checks it is bit-identical.
+barrier, writes each subscene's checkpoint (``checkpoint_arrays``, what a worker sends
+the coordinator) as the coordinator does: streamed into a ``coordinator.store.ChunkFile``
+in the barrier loop, then handed to a ``CheckpointWriter`` thread that fsyncs the files
+and writes the manifest.  Prints, per barrier: the checkpoint bytes, the share of the
+per-patch rows (radiosity, unshot) that changed since the previous barrier, what an
+XOR-with-the-previous delta would take zlib-compressed (the incremental encoding the
+store once used), the seconds the file writes held the barrier loop and the writer's
+seconds in its thread.  Then the same solve without checkpoints, for the loop's wall
+time with and without, and a reload of the last barrier, checked bit-identical.
 
-    .venv/bin/python bench/bench_checkpoint.py [--rows 8 --cols 8 --subscenes 2]
+    .venv/bin/python bench/bench_checkpoint.py [--rows 8 --cols 8 --subscenes 4]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 import scenes
-from coordinator.store import CheckpointWriter, JobStore
+from coordinator.store import CheckpointWriter, ChunkFile, JobStore, cell_file
 from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, build_subscenes, checkpoint_arrays, run_divided
 from dcrad.pipeline import prepare
+from dcrad.wire import arrays_to_chunks
+
+ROWS = ("radiosity", "unshot")
+
+
+def _delta_bytes(cur: np.ndarray, prev: np.ndarray) -> tuple[int, int]:
+    """(rows changed, zlib bytes of the byte-shuffled XOR with the previous barrier)."""
+    xor = cur.view(np.uint64) ^ prev.view(np.uint64)
+    changed = int(xor.reshape(len(cur), -1).any(axis=1).sum())
+    shuffled = np.ascontiguousarray(xor).view(np.uint8).reshape(-1, 8).T.tobytes()
+    return changed, len(zlib.compress(shuffled, 1))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rows", type=int, default=8)
     ap.add_argument("--cols", type=int, default=8)
-    ap.add_argument("--subscenes", type=int, default=2)
-    ap.add_argument("--tol", type=float, default=0.01)
+    ap.add_argument("--subscenes", type=int, default=4)
+    ap.add_argument("--tol", type=float, default=0.0, help="0: stop by the accuracy target")
     ap.add_argument("--no-fsync", action="store_true")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="dcrad-bench-ckpt-") as tmp:
@@ -39,40 +56,67 @@ def main() -> None:
         _, patches, _ = prepare(path)
         config = SolverConfig(tol=args.tol)
         divide = DivideConfig(subscenes=args.subscenes)
-        subs, bnds, _, _ = build_subscenes(patches, config, divide)
         store = JobStore(Path(tmp) / "jobs")
         folder = store.folder("bench") / "checkpoints"
+        folder.mkdir(parents=True)
         writer = CheckpointWriter(folder, fsync=not args.no_fsync)
-        held, last = [], {}
+        rows: list[tuple] = []
+        prev: dict[int, dict] = {}
+        last: dict[int, dict] = {}
+
+        subs, bnds, _, _ = build_subscenes(patches, config, divide)
 
         def on_barrier(run):
-            cells = {s.cell: checkpoint_arrays(s) for s in subs}
-            for c, a in cells.items():  # the coordinator holds its own copy of each
-                last[c] = {k: np.array(v, copy=True) for k, v in a.items()}
             t0 = time.perf_counter()
-            writer.submit(run.barriers, last.copy(), run.snapshots[-1].time)
-            held.append(time.perf_counter() - t0)
+            files, nbytes = {}, 0
+            for s in subs:
+                files[s.cell] = folder / cell_file(s.cell, run.barriers)
+                nbytes += ChunkFile.write(files[s.cell], arrays_to_chunks(checkpoint_arrays(s)))[0]
+            writer.submit(run.barriers, files, run.snapshots[-1].time)
+            held = time.perf_counter() - t0
+            # what changed since the previous barrier (measured outside the timed part)
+            changed = total = delta = raw = 0
+            for s in subs:
+                now = {k: checkpoint_arrays(s)[k].copy() for k in ROWS}
+                last[s.cell] = checkpoint_arrays(s)
+                if s.cell in prev:
+                    for k in ROWS:
+                        c, z = _delta_bytes(now[k], prev[s.cell][k])
+                        changed, total, delta, raw = changed + c, total + len(now[k]), delta + z, raw + now[k].nbytes
+                prev[s.cell] = now
+            rows.append((run.barriers, nbytes, changed / total if total else float("nan"),
+                         delta / raw if raw else float("nan"), held))
 
         t0 = time.perf_counter()
         run = run_divided(subs, bnds, config, divide.batches_per_barrier, on_barrier=on_barrier)
-        solve_s = time.perf_counter() - t0
+        with_ckpt = time.perf_counter() - t0
         writer.close()
+
+        subs, bnds, _, _ = build_subscenes(patches, config, divide)
+        t0 = time.perf_counter()
+        run2 = run_divided(subs, bnds, config, divide.batches_per_barrier)
+        without = time.perf_counter() - t0
+
         print(f"office:rows={args.rows},cols={args.cols}: {len(patches)} patches, {len(subs)} subscenes, "
-              f"{run.barriers} barriers, solve {solve_s:.2f} s, fsync {'off' if args.no_fsync else 'on'}")
-        print(f"{'barrier':>7} {'whole MB':>9} {'written MB':>10} {'ratio':>6} {'write s':>8}")
-        for b, written, whole, dt in writer.stats["per_barrier"]:
-            print(f"{b:7d} {whole / 1e6:9.3f} {written / 1e6:10.3f} {written / whole:6.2f} {dt:8.4f}")
+              f"{run.barriers} barriers, fsync {'off' if args.no_fsync else 'on'}, load {os.getloadavg()[0]:.2f}")
+        print(f"{'barrier':>7} {'ckpt MB':>8} {'rows changed':>12} {'xor+zlib/raw':>12} {'loop held s':>11} "
+              f"{'writer s':>8}")
+        sync = {b: dt for b, _, dt in writer.stats["per_barrier"]}
+        for b, nbytes, changed, delta, held in rows:
+            print(f"{b:7d} {nbytes / 1e6:8.2f} {changed:12.3f} {delta:12.3f} {held:11.4f} "
+                  f"{sync.get(b, float('nan')):8.4f}")
+        held = sum(r[4] for r in rows)
         st = writer.stats
-        print(f"total: whole {st['full_bytes'] / 1e6:.2f} MB, written {st['bytes'] / 1e6:.2f} MB "
-              f"({st['bytes'] / max(st['full_bytes'], 1):.2f}), writer {st['seconds']:.3f} s in its thread, "
-              f"barrier loop held {sum(held) * 1e3:.2f} ms in all, {st['skipped']} barriers skipped")
-        on_disk = sum(p.stat().st_size for p in folder.iterdir())
+        print(f"total: {sum(r[1] for r in rows) / 1e6:.1f} MB of checkpoints; file writes held the barrier loop "
+              f"{held:.3f} s of {with_ckpt:.2f} s ({100 * held / with_ckpt:.1f}%); the writer thread spent "
+              f"{st['seconds']:.3f} s (fsync + manifest), {st['skipped']} barriers skipped")
+        print(f"barrier loop wall: with checkpoints {with_ckpt:.2f} s, without {without:.2f} s "
+              f"(same barriers: {run.barriers == run2.barriers})")
         res = store.resume("bench")
         same = res is not None and all(
-            all(np.array_equal(res.cells[c][k], last[c][k]) and res.cells[c][k].dtype == last[c][k].dtype
-                for k in last[c]) for c in last)
-        print(f"on disk now {on_disk / 1e6:.2f} MB; reloaded barrier {res.barrier if res else None}: "
-              f"bit-identical {same}")
+            all(np.array_equal(back[k], last[c][k]) and back[k].dtype == np.asarray(last[c][k]).dtype
+                for k in last[c]) for c, back in ((c, ChunkFile.read(p)) for c, p in res.cells.items()))
+        print(f"reloaded barrier {res.barrier if res else None}: bit-identical {same}")
 
 
 if __name__ == "__main__":

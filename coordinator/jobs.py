@@ -22,10 +22,12 @@ import shutil
 import threading
 import time
 import traceback
+import tracemalloc
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -188,35 +190,61 @@ class ErrorCurve:
 
     While running, the assembled B (float32) is kept at geometrically spaced
     times (each kept time >= ``ratio`` times the previous, plus the latest), so
-    memory grows with log(run time), not with the barriers.  ``measure`` then
-    computes each kept state's area-weighted RMS error against the final B and
-    frees the states.
+    the count grows with log(run time), not with the barriers.  With a ``folder``
+    the states are kept there as .npy files, not in memory (a 1.3M-patch B is
+    15 MB).  ``measure`` then computes each kept state's area-weighted RMS error
+    against the final B and frees the states.
     """
 
-    def __init__(self, ratio: float = 1.05, cap: int = 400):
-        self.ratio, self.cap = ratio, cap
-        self.kept: list[tuple[float, int, np.ndarray]] = []  # (elapsed s, barrier, B)
+    def __init__(self, ratio: float = 1.05, cap: int = 400, folder: Path | None = None):
+        self.ratio, self.cap, self.folder = ratio, cap, folder
+        self.kept: list[tuple[float, int, np.ndarray | Path]] = []  # (elapsed s, barrier, B or its file)
         self._tail = False  # the last kept entry is only "the latest"
         self.measured: list[tuple[float, float, int]] | None = None  # (elapsed s, rms W/m^2, barrier)
         self.label = ""
 
+    def _keep(self, barrier: int, b: np.ndarray) -> np.ndarray | Path:
+        b32 = np.asarray(b, np.float32)
+        if self.folder is None:
+            return b32.copy()
+        self.folder.mkdir(parents=True, exist_ok=True)
+        path = self.folder / f"B-{barrier:06d}.npy"
+        np.save(path, b32)
+        return path
+
+    @staticmethod
+    def _drop(entry: tuple[float, int, np.ndarray | Path]) -> None:
+        if isinstance(entry[2], Path):
+            entry[2].unlink(missing_ok=True)
+
     def record(self, t: float, barrier: int, b: np.ndarray) -> None:
         if self._tail:
-            self.kept.pop()
+            self._drop(self.kept.pop())
         anchor = self.kept[-1][0] if self.kept else None
-        self.kept.append((t, barrier, np.asarray(b, np.float32).copy()))
+        self.kept.append((t, barrier, self._keep(barrier, b)))
         self._tail = anchor is not None and t < anchor * self.ratio
         if len(self.kept) > self.cap:  # a very long run: halve the density
             last = self.kept[-1]
+            for e in self.kept[1:-1:2]:
+                self._drop(e)
             self.kept = self.kept[:-1:2] + [last]
             self.ratio *= self.ratio
 
     def measure(self, final: np.ndarray, area: np.ndarray, label: str, final_barrier: int | None = None) -> None:
         """RMS error of each kept state against ``final``; the final state itself (0 by
         construction, float32 round-off in practice) is left out."""
-        self.measured = [(t, rms_error(b, final, area), k) for t, k, b in self.kept if k != final_barrier]
+        self.measured = [(t, rms_error(np.load(b) if isinstance(b, Path) else b, final, area), k)
+                         for t, k, b in self.kept if k != final_barrier]
         self.label = label
+        self.clear()
+
+    def clear(self) -> None:
+        """Free the kept states (and their files)."""
+        for e in self.kept:
+            self._drop(e)
         self.kept = []
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
 
 
 @dataclass
@@ -267,6 +295,50 @@ class Job:
                 await ev.wait()
             finally:
                 self._waiters.remove((loop, ev))
+
+
+def rss_mb() -> tuple[float, float]:
+    """(resident set, its high-water mark) of this process in MB, from /proc (0, 0 elsewhere)."""
+    try:
+        st = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines() if ":" in line)
+        return int(st["VmRSS"].split()[0]) / 1024, int(st["VmHWM"].split()[0]) / 1024
+    except (OSError, KeyError, ValueError):
+        return 0.0, 0.0
+
+
+class MemoryLog:
+    """The coordinator's RSS after each phase of a job: logged, and kept for the report.
+
+    Under ``PYTHONTRACEMALLOC=1`` the log lines add the traced total and the largest
+    allocation sites (what the RSS is made of, less Embree, gRPC and the allocator's slack).
+    """
+
+    def __init__(self, job_id: str):
+        self.job_id = job_id
+        self.phases: dict[str, float] = {}
+
+    def __call__(self, phase: str) -> None:
+        rss, peak = rss_mb()
+        self.phases[phase] = round(max(rss, self.phases.get(phase, 0.0)), 1)  # a repeated phase: its max
+        self.phases["peak"] = round(peak, 1)
+        extra = ""
+        if tracemalloc.is_tracing():
+            cur, tpeak = tracemalloc.get_traced_memory()
+            extra = f" (traced {cur / 2**20:.0f} MB, traced peak {tpeak / 2**20:.0f} MB)"
+            top = tracemalloc.take_snapshot().statistics("lineno")[:8]
+            extra += "".join(f"\n    {st.size / 2**20:8.1f} MB {st.traceback}" for st in top)
+        log.info("job %s: coordinator RSS %.0f MB after %s, peak %.0f MB%s", self.job_id, rss, phase, peak, extra)
+
+
+@dataclass
+class PieceArea:
+    """What assembly reads of a clipped piece (``divide.assemble``) once its patches are on
+    its worker: their areas.  The coordinator keeps no piece geometry through the solve."""
+
+    area: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.area)
 
 
 def _record_fields(obj: Job | JobRecord) -> dict:
@@ -331,7 +403,7 @@ class JobManager:
                         job.id, sorted(resume.cells), sorted(h.cell for h in handles))
             return None
         for h in handles:
-            h.checkpoint = resume.cells[h.cell]
+            h.resume_from(resume.cells[h.cell], resume.barrier)
         log.warning("job %s resumes from barrier %d (%.1f s in) after a coordinator restart",
                  job.id, resume.barrier, resume.elapsed)
         return resume
@@ -428,7 +500,7 @@ class JobManager:
             job.finished = time.time()
             self._save(job)
             self.store.drop_checkpoints(job.id)  # ended: the results are in out/
-            job.curve.kept = []  # a failed job frees its snapshots too
+            job.curve.clear()  # a failed job frees its snapshots too
             if job.preview is not None:
                 job.preview.close()
             # one last message carrying the final state, so every watcher sees the end
@@ -448,6 +520,8 @@ class JobManager:
                                        spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
                                        timings=phases)
         timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
+        mem = MemoryLog(job.id)
+        mem("load and mesh")
         # a job resumed after a restart waits longer: its workers may come back after the coordinator
         wait = self.worker_wait if job.resume is None else max(self.worker_wait, RESUME_WAIT)
         live = self.pool.wait_for(1, wait)
@@ -460,21 +534,27 @@ class JobManager:
         # specs (arrays), not Subscenes: the coordinator builds no Embree scene for them
         subs, boundaries, parents, part = subscene_specs(patches, config, divide)
         job.subscenes = len(subs)
-        handles = [RemoteSubscene(job.id, s, self.pool, self.rpc_timeout) for s in subs]
+        folder = job.root / "checkpoints"
+        handles = [RemoteSubscene(job.id, s, self.pool, self.rpc_timeout, folder) for s in subs]
         resume = self._resume_handles(job, handles)
+        mem("partition")
         job.state, job.started = "running", time.time() - (resume.elapsed if resume else 0.0)
         job.divide = dataclasses.asdict(divide)
         self._save(job)
-        writer = CheckpointWriter(job.root / "checkpoints")
+        writer = CheckpointWriter(folder, start_barrier=resume.barrier if resume else 0)
         display = None
         try:
             for h in handles:
                 h.place()
             timings["setup_s"] = time.perf_counter() - t0  # partition, clip, load on the workers
             job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
-            pieces = [s.patches for s in subs]
+            # the pieces' patches are on the workers (and in static-K.ck): keep their areas only
+            pieces: list[Any] = [PieceArea(s.patches.area) for s in subs]
+            del subs
+            mem("load on workers")
 
             job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
+            job.curve.folder = job.root / "curve"
             done = {"rays": 0, "bytes_relayed": 0}  # counted into the metrics so far
             piece_area = np.concatenate([p.area for p in pieces])
             splits = np.cumsum([len(p) for p in pieces])[:-1]
@@ -486,7 +566,7 @@ class JobManager:
             accuracy = resolve(config).accuracy  # the target every Progress reports (fixed for the job)
 
             def on_barrier(run):
-                writer.submit(run.barriers, {h.cell: h.checkpoint for h in handles}, time.time() - job.started)
+                writer.submit(run.barriers, {h.cell: h.checkpoint_path for h in handles}, time.time() - job.started)
                 values = np.concatenate([h.radiosity() for h in handles])  # the display thread's copy
                 job.residual = run.ledger.residual()
                 job.workers = sorted({h.worker.address for h in handles})
@@ -498,6 +578,7 @@ class JobManager:
                 self.count(barriers=1, **{k: max(0, now[k] - done[k]) for k in now})
                 done.update(now)
                 job.notify()
+                mem("barrier")
 
             with ThreadPoolExecutor(max_workers=len(handles)) as ex:
                 run = run_divided(handles, boundaries, self._left(config, resume), divide.batches_per_barrier, ex,
@@ -505,11 +586,12 @@ class JobManager:
                                   first_barrier=resume.barrier if resume else 0)
             writer.close()
             display.close()  # the curve's last states and the pending preview are in
+            mem("solve")
 
             # Results: the same files as `dcrad solve`
             patches.radiosity = assemble(len(patches), patches.area, parents, pieces,
                                          [h.radiosity() for h in handles])
-            unshot = [h.checkpoint["unshot"] if h.checkpoint else h.static["unshot"] for h in handles]
+            unshot = [h.saved_arrays({"unshot"})["unshot"] for h in handles]
             patches.unshot = assemble(len(patches), patches.area, parents, pieces, unshot)
             if job.preview.barrier != run.barriers:  # always show the final state
                 job.preview.render(patches.radiosity, run.barriers)
@@ -530,10 +612,13 @@ class JobManager:
             if resume is not None:
                 books.choices.append(f"resumed from barrier {resume.barrier} after a coordinator restart "
                                      f"(checkpoints on disk)")
+            mem("assembly")
+            books.divided["coordinator_rss_mb"] = dict(mem.phases)
             settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
                                       spec.solver.workplane)
             job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
                                     spec.preview_height or 480, extra={"error_curve": self.curve_dict(job)})
+            mem("outputs")
             job.residual = run.ledger.residual()
             job.state = "cancelled" if run.stopped_by == "stopped" else "done"
         finally:

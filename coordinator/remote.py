@@ -5,19 +5,26 @@
 ``dcrad.divide.run_divided`` drives remote workers unchanged.
 
 Failover: after every successful ``deliver`` (the end of a barrier) the handle
-takes a checkpoint of its subscene.  When a worker stops answering, the
-subscene is loaded on another live worker from that checkpoint.  The solver is
-deterministic (the checkpoint carries the RNG state), so replaying the
-interrupted barrier's ``iterate`` reproduces exactly what was lost: no energy
-is lost or counted twice.
+takes a checkpoint of its subscene, streamed from the worker straight into a
+file (``coordinator.store.ChunkFile``); the patches and boundaries it sent at
+load are in a file too.  The handle keeps in memory only the subscene's radiosity
+(for the live display), so the coordinator's memory does not grow with the
+checkpoints.  When a worker stops answering, the subscene is loaded on another
+live worker from those files.  The solver is deterministic (the checkpoint
+carries the RNG state), so replaying the interrupted barrier's ``iterate``
+reproduces exactly what was lost: no energy is lost or counted twice.  A disk that
+refuses the files (full, read-only) turns the handle to keeping them in memory.
 """
 
 from __future__ import annotations
 
 import logging
+import tempfile
 import threading
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import grpc
 import numpy as np
@@ -32,6 +39,7 @@ from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_from_pb, plan_fields
 
 from .rpc import MAX_MESSAGE
+from .store import ChunkFile, cell_file, static_file
 
 log = logging.getLogger("dcrad.coordinator")
 
@@ -98,9 +106,10 @@ class WorkerPool:
             if w.alive:
                 log.warning("worker %s stopped answering; its subscenes move", w.address)
             w.alive = False
-            if w.channel is not None:
-                w.channel.close()
-                w.channel = None
+            # drop the channel, do not close it: another thread may be calling on it this
+            # instant (two subscenes on one worker), and a call on a closed channel raises
+            # ValueError, not a gRPC error; it fails UNAVAILABLE and is freed with its stubs
+            w.channel = None
 
     def pick(self, exclude: frozenset[str] | set[str] = frozenset()) -> WorkerEntry:
         """The live worker with the most spare capacity (ties: registration order)."""
@@ -133,22 +142,64 @@ def _gather(replies) -> tuple[dict, pb.SubsceneStatus | None]:
     return asm.result(), status
 
 
+class _Saved:
+    """Arrays kept for a subscene: a chunk file, or (the disk refused it) the chunks in memory."""
+
+    def __init__(self, path: Path | None = None, chunks: list | None = None, nbytes: int = 0):
+        self.path, self._chunks, self.nbytes = path, chunks, nbytes
+
+    @classmethod
+    def write(cls, path: Path, chunks: Iterable[pb.ArrayChunk], keep=()) -> tuple["_Saved", dict]:
+        nbytes, kept = ChunkFile.write(path, chunks, keep)
+        return cls(path=path, nbytes=nbytes), kept
+
+    @classmethod
+    def in_memory(cls, chunks: Iterable[pb.ArrayChunk], keep=()) -> tuple["_Saved", dict]:
+        held = list(chunks)
+        asm = ArrayAssembler()
+        for c in held:
+            if c.name in keep:
+                asm.add(c)
+        return cls(chunks=held, nbytes=sum(len(c.data) for c in held)), asm.result()
+
+    def chunks(self, skip=()):
+        if self._chunks is not None:
+            return (c for c in self._chunks if c.name not in skip)
+        assert self.path is not None
+        return ChunkFile.chunks(self.path, skip)
+
+    def read(self, names) -> dict:
+        asm = ArrayAssembler()
+        for c in self.chunks():
+            if c.name in names:
+                asm.add(c)
+        return asm.result()
+
+
 class RemoteSubscene:
     """One subscene on a worker, with checkpoints and failover.
 
-    job_id, cell : identity; sub : the in-process Subscene built by the coordinator
-    (only its arrays are sent; it is not iterated here); pool : WorkerPool.
+    job_id, cell : identity; sub : the SubsceneSpec (or Subscene) built by the coordinator
+    (only its arrays are sent; it is not iterated here); pool : WorkerPool; folder : where
+    the handle's files go (the job's checkpoints folder; None: a temporary folder of its own).
+    ``barrier`` counts the handle's barriers (delivers), from ``resume_from``'s barrier.
     """
 
-    def __init__(self, job_id: str, sub, pool: WorkerPool, timeout: float = 600.0):
+    def __init__(self, job_id: str, sub, pool: WorkerPool, timeout: float = 600.0, folder: Path | None = None):
         self.job_id, self.cell, self.pool, self.timeout = job_id, sub.cell, pool, timeout
         self.mode = sub.mode
         self.key = pb.SubsceneKey(job_id=job_id, cell=sub.cell)
         self.header = pb.SubsceneHeader(key=self.key, solver=to_pb(sub.config, pb.SolverSettings),
                                         power_per_ray=sub.power_per_ray, mode=sub.mode,
                                         names=list(sub.patches.names), local_target=sub.local_target)
-        self.static = subscene_arrays(sub)
-        self.checkpoint: dict | None = None  #: state after the last barrier
+        self.folder = Path(folder) if folder is not None else None
+        self._own_folder: tempfile.TemporaryDirectory[str] | None = None
+        #: the arrays sent at load, until the first place() saves them (then dropped from memory)
+        self._static: dict | None = subscene_arrays(sub)
+        self._static_saved: _Saved | None = None
+        self._checkpoint: _Saved | None = None  #: state after the last barrier
+        self._radiosity: np.ndarray = sub.patches.radiosity  #: (n,3) at the last barrier
+        self.barrier = 0
         self.worker: WorkerEntry | None = None
         self.reassigned = 0
         self.bytes_relayed = 0
@@ -162,22 +213,70 @@ class RemoteSubscene:
         self.checkpoint_bytes = 0  #: bytes of checkpoints fetched
         self.compute_s = 0.0  #: s the workers spent iterating this subscene
 
+    # -- files ------------------------------------------------------------------
+    def _dir(self) -> Path:
+        if self.folder is None:
+            self._own_folder = tempfile.TemporaryDirectory(prefix="dcrad-subscene-")
+            self.folder = Path(self._own_folder.name)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        return self.folder
+
+    def _save(self, name: str, make_chunks, keep=()) -> tuple[_Saved, dict]:
+        """Stream ``make_chunks()`` into the file ``name``; a disk that refuses it: a second
+        ``make_chunks()`` into memory (logged)."""
+        try:
+            return _Saved.write(self._dir() / name, make_chunks(), keep)
+        except OSError as exc:
+            log.warning("job %s cell %d: cannot write %s (%s); kept in memory, not durable",
+                        self.job_id, self.cell, name, exc)
+            return _Saved.in_memory(make_chunks(), keep)
+
+    def _save_static(self) -> None:
+        if self._static is None:
+            return
+        static = self._static
+        self._static_saved, _ = self._save(static_file(self.cell), lambda: arrays_to_chunks(static))
+        self._static = None
+
+    def resume_from(self, path: Path, barrier: int) -> None:
+        """Start from a checkpoint file on disk (a coordinator restart) at that barrier."""
+        self._checkpoint = _Saved(path=Path(path))
+        self._radiosity = self._checkpoint.read({"radiosity"})["radiosity"]
+        self.barrier = barrier
+
+    @property
+    def checkpoint_path(self) -> Path | None:
+        """The file of the last barrier's checkpoint (None: none yet, or kept in memory)."""
+        return self._checkpoint.path if self._checkpoint is not None else None
+
+    def saved_arrays(self, names: set[str]) -> dict:
+        """Arrays of the subscene's state at the last barrier (the checkpoint's, else the loaded ones)."""
+        if self._checkpoint is not None:
+            return self._checkpoint.read(names)
+        if self._static is not None:
+            return {k: self._static[k] for k in names}
+        assert self._static_saved is not None
+        return self._static_saved.read(names)
+
     # -- placement --------------------------------------------------------------
     def _load(self, w: WorkerEntry) -> None:
-        arrays = dict(self.static)
-        if self.checkpoint is not None:
-            arrays.update(self.checkpoint)
+        self._save_static()
+        assert self._static_saved is not None
+        static, ckpt = self._static_saved, self._checkpoint
 
         def requests():
             yield pb.LoadRequest(header=self.header)
-            for c in arrays_to_chunks(arrays):
+            # the checkpoint's radiosity and unshot replace the loaded ones
+            for c in static.chunks(skip={"radiosity", "unshot"} if ckpt is not None else ()):
                 yield pb.LoadRequest(array=c)
+            if ckpt is not None:
+                for c in ckpt.chunks():
+                    yield pb.LoadRequest(array=c)
 
         t0 = time.perf_counter()
         self._status = w.stub().Load(requests(), timeout=self.timeout)
         self.rpc_seconds["load"] += time.perf_counter() - t0
         self.worker = w
-
     def place(self) -> None:
         """Load on the least busy live worker, moving on when one fails."""
         tried: set[str] = set()
@@ -250,10 +349,10 @@ class RemoteSubscene:
                 t0 = time.perf_counter()
                 self._status = self._stub().Deliver(requests(), timeout=self.timeout)
                 t1 = time.perf_counter()
-                self.checkpoint = self._fetch_checkpoint()
+                self._fetch_checkpoint(self.barrier + 1)
+                self.barrier += 1
                 self.rpc_seconds["deliver"] += t1 - t0
                 self.rpc_seconds["checkpoint"] += time.perf_counter() - t1
-                self.checkpoint_bytes += sum(a.nbytes for a in self.checkpoint.values())
                 return
             except grpc.RpcError as exc:
                 # the new worker starts from the previous barrier: replay this barrier's
@@ -264,11 +363,16 @@ class RemoteSubscene:
                 except grpc.RpcError as again:
                     self._failover(again)
 
-    def _fetch_checkpoint(self) -> dict:
-        asm = ArrayAssembler()
-        for c in self._stub().Checkpoint(self.key, timeout=self.timeout):
-            asm.add(c)
-        return asm.result()
+    def _fetch_checkpoint(self, barrier: int) -> None:
+        """The worker's state after this barrier's deliver, streamed into its file; only the
+        radiosity stays in memory.  (The Checkpoint call changes nothing on the worker, so a
+        refused file is simply fetched again, into memory.)"""
+        def stream():
+            return self._stub().Checkpoint(self.key, timeout=self.timeout)
+
+        saved, kept = self._save(cell_file(self.cell, barrier), stream, keep={"radiosity"})
+        self._checkpoint, self._radiosity = saved, kept["radiosity"]
+        self.checkpoint_bytes += saved.nbytes
 
     def state(self) -> SubsceneState:
         s = self._status
@@ -282,9 +386,7 @@ class RemoteSubscene:
 
     def radiosity(self) -> np.ndarray:
         """(n,3) radiosity of the subscene's patches at the last barrier."""
-        if self.checkpoint is None:
-            return self.static["radiosity"]
-        return self.checkpoint["radiosity"]
+        return self._radiosity
 
     def drop(self) -> None:
         if self.worker is not None:
@@ -293,3 +395,6 @@ class RemoteSubscene:
             except grpc.RpcError:
                 pass
             self.pool.release(self.worker)
+        if self._own_folder is not None:
+            self._own_folder.cleanup()
+            self._own_folder = None

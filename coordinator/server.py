@@ -11,6 +11,7 @@ FAILED_PRECONDITION for results of a job that is not done.
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import logging
 import shutil
 import uuid
@@ -32,6 +33,23 @@ log = logging.getLogger("dcrad.coordinator")
 
 #: default upload limit (bytes) for one job's scene files
 MAX_UPLOAD = 512 * 1024 * 1024
+#: glibc's mallopt parameter, and the size from which the coordinator's allocations are mmapped
+_M_MMAP_THRESHOLD, MMAP_THRESHOLD = -3, 256 * 1024
+
+
+def return_freed_memory() -> bool:
+    """Have glibc hand every allocation of MMAP_THRESHOLD bytes or more back to the system when freed.
+
+    The coordinator's arrays (checkpoint and twin-buffer chunks, assembled radiosity) come and
+    go at every barrier, in several threads.  glibc's default threshold grows up to 32 MB as
+    such blocks are freed, after which they come from heaps that keep the freed space: the 8x8
+    office's coordinator peaked at 1230 MB RSS for 540 MB allocated; with a fixed 256 KiB
+    threshold at 680 MB.  False where there is no glibc.
+    """
+    try:
+        return bool(ctypes.CDLL("libc.so.6").mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD))
+    except (OSError, AttributeError):
+        return False
 
 
 class CoordinatorServicer(pb_grpc.CoordinatorServicer):
@@ -125,6 +143,7 @@ async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "
     web_port : the status pages' port (0: any free port; None: no web endpoint), on
                ``web_host``, served on this same event loop; ``web_ready(url)`` once bound.
     """
+    return_freed_memory()
     pool = WorkerPool()
     manager = JobManager(Path(root), pool, worker_wait=worker_wait, preview_interval=preview_interval)
     servicer = CoordinatorServicer(manager, max_upload)

@@ -5,23 +5,26 @@ Layout of one job (``DATA/jobs/ID/``)::
     job.json                     the record: spec, state, times, the resolved divide settings
     scene/                       the uploaded scene files (written by ``JobManager.create``)
     checkpoints/manifest.json    the last barrier whose checkpoints are all on disk
-    checkpoints/cell-K-NNNNNN.npz  cell K at barrier N: whole ("full") or the change since N-1
+    checkpoints/cell-K-NNNNNN.ck cell K's checkpoint at barrier N (the worker's state after deliver)
+    checkpoints/static-K.ck      cell K's patches and boundaries, as sent to its worker at load
+    curve/                       the error curve's kept states while the job runs
     out/                         the results, once the job has ended
 
-Every file is written atomically: to a temporary name in the same folder, flushed
-and fsynced, then renamed over the old one (and the folder fsynced), so a crash
-leaves either the old or the new file, never half of one.  A checkpoint barrier
-counts only once the manifest names it, and the manifest is written after every
-cell's file for that barrier, so a crash mid-barrier resumes from the one before.
+The coordinator holds no checkpoint in memory: ``RemoteSubscene`` streams each
+checkpoint from its worker straight into its ``.ck`` file (``ChunkFile``: the
+wire's ``ArrayChunk`` messages, length-prefixed, between a magic header and an
+end mark), keeping only the subscene's radiosity for the live display; a
+failover or a resume streams the files back to a worker.  Files are written to a
+temporary name and renamed; the ``CheckpointWriter`` thread then fsyncs a
+barrier's files and only after that writes the manifest naming them (atomically,
+fsynced), so a crash mid-barrier resumes from the barrier before, and files no
+manifest names any more are deleted.
 
-Checkpoints are written by a ``CheckpointWriter`` thread, off the barrier loop: the
-loop hands over the arrays it already holds (the coordinator replaces, never
-mutates, a checkpoint dict) and goes on.  When the writer falls behind, it skips to
-the newest barrier.  Writes are incremental: the per-patch arrays (``radiosity``,
-``unshot``) are stored as the rows that changed since the previous file when few
-did, else as the bitwise XOR with the previous file, byte-shuffled and zlib
-compressed when that is at most ``COMPRESS_MAX`` of the raw size, else whole.
-A chain of changes is closed by a full file once it would outweigh one.
+Checkpoints are stored whole, not as changes since the last barrier: with exact
+forwarding 98-99% of a subscene's rows change between barriers, and the
+incremental encoding once used here saved 3% of the bytes on the 8x8 office
+(``bench/bench_checkpoint.py``) while holding a second copy of every checkpoint
+in memory.
 
 No numerics here: the arrays are stored bit for bit, so a resumed subscene is the
 one that was checkpointed.
@@ -30,41 +33,43 @@ one that was checkpointed.
 from __future__ import annotations
 
 import base64
-import io
 import json
 import logging
 import os
 import re
 import shutil
+import struct
 import threading
 import time
-import zlib
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TypedDict
 
-import numpy as np
-
 from dcrad.v1 import dcrad_pb2 as pb
+from dcrad.wire import ArrayAssembler
 
 log = logging.getLogger("dcrad.coordinator")
 
-__all__ = ["JobStore", "JobRecord", "Resume", "StoredPreview", "CheckpointWriter", "atomic_write", "encode_delta",
-           "decode_delta", "ROW_ARRAYS"]
+__all__ = ["JobStore", "JobRecord", "Resume", "StoredPreview", "CheckpointWriter", "ChunkFile", "atomic_write",
+           "fsync_file"]
 
 RECORD = "job.json"
 CHECKPOINTS = "checkpoints"
 MANIFEST = "manifest.json"
 VERSION = 1
-#: per-patch arrays stored incrementally; every other checkpoint array is small and stored whole
-ROW_ARRAYS = ("radiosity", "unshot", "noise_diff", "noise_unshot")
-#: store changed rows (index + row) when at most this share of the rows changed
-ROWS_MAX = 0.25
-#: keep the compressed XOR only when it is at most this share of the raw bytes
-COMPRESS_MAX = 0.8
-#: rows of the XOR tried first, to skip compressing what will not shrink
-SAMPLE_ROWS = 4096
-_CELL_FILE = re.compile(r"cell-(\d+)-(\d+)\.npz$")
+#: manifest format: 2 names one whole .ck file per cell (1 was npz chains of changes)
+MANIFEST_FORMAT = 2
+_CELL_FILE = re.compile(r"cell-(\d+)-(\d+)\.ck$")
+
+
+def cell_file(cell: int, barrier: int) -> str:
+    """File name of cell's checkpoint at a barrier."""
+    return f"cell-{cell}-{barrier:06d}.ck"
+
+
+def static_file(cell: int) -> str:
+    return f"static-{cell}.ck"
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -92,6 +97,96 @@ def atomic_write(path: Path, data: bytes, fsync: bool = True) -> None:
     os.replace(tmp, path)
     if fsync:
         _fsync_dir(path.parent)
+
+
+def fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+# == chunk files ======================================================================
+class ChunkFile:
+    """Arrays on disk as the wire's ``ArrayChunk`` messages: streamed in and out, never whole in memory.
+
+    Layout: ``MAGIC``, then per chunk an 8-byte little-endian length and the serialized
+    message, then a zero length (the end mark: a file cut short has none and is refused).
+    """
+
+    MAGIC = b"DCRADCK1"
+    _LEN = struct.Struct("<Q")
+    #: largest record accepted on reading (a chunk carries at most wire.CHUNK_BYTES of data)
+    MAX_RECORD = 64 << 20
+
+    @classmethod
+    def write(cls, path: Path, chunks: Iterable[pb.ArrayChunk], keep: Iterable[str] = ()) -> tuple[int, dict]:
+        """Write chunks to ``path`` (a temporary name, then renamed; not fsynced).
+
+        Returns (payload bytes, {name: array} for the names in ``keep``, assembled as they pass).
+        """
+        path = Path(path)
+        keep = set(keep)
+        asm = ArrayAssembler()
+        tmp = path.with_name(f".{path.name}.tmp")
+        nbytes = 0
+        try:
+            with open(tmp, "wb") as f:
+                f.write(cls.MAGIC)
+                for c in chunks:
+                    blob = c.SerializeToString()
+                    f.write(cls._LEN.pack(len(blob)))
+                    f.write(blob)
+                    nbytes += len(c.data)
+                    if c.name in keep:
+                        asm.add(c)
+                f.write(cls._LEN.pack(0))
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return nbytes, asm.result()
+
+    @classmethod
+    def chunks(cls, path: Path, skip: Iterable[str] = ()) -> Iterator[pb.ArrayChunk]:
+        """The chunks of a file, in order, leaving out the arrays named in ``skip``;
+        ValueError for a file that is not a whole chunk file."""
+        skip = set(skip)
+        with open(path, "rb") as f:
+            if f.read(len(cls.MAGIC)) != cls.MAGIC:
+                raise ValueError(f"{Path(path).name} is not a dcrad chunk file")
+            while True:
+                head = f.read(cls._LEN.size)
+                if len(head) != cls._LEN.size:
+                    raise ValueError(f"{Path(path).name} is cut short (no end mark)")
+                (n,) = cls._LEN.unpack(head)
+                if n == 0:
+                    return
+                if n > cls.MAX_RECORD:
+                    raise ValueError(f"{Path(path).name}: a record of {n} bytes")
+                blob = f.read(n)
+                if len(blob) != n:
+                    raise ValueError(f"{Path(path).name} is cut short")
+                c = pb.ArrayChunk()
+                c.ParseFromString(blob)
+                if c.name not in skip:
+                    yield c
+
+    @classmethod
+    def read(cls, path: Path, names: Iterable[str] | None = None) -> dict:
+        """The arrays of a file ({name: array}); only ``names`` when given."""
+        want = None if names is None else set(names)
+        asm = ArrayAssembler()
+        for c in cls.chunks(path):
+            if want is None or c.name in want:
+                asm.add(c)
+        return asm.result()
+
+    @classmethod
+    def names(cls, path: Path) -> set[str]:
+        """The array names in a whole file (reads it through: checks it is whole)."""
+        return {c.name for c in cls.chunks(path)}
 
 
 # == the job record ====================================================================
@@ -178,9 +273,10 @@ class JobStore:
         shutil.rmtree(self.folder(job_id) / CHECKPOINTS, ignore_errors=True)
 
     def resume(self, job_id: str) -> "Resume | None":
-        """The last complete barrier's checkpoints of a job, or None (start over).
+        """The last complete barrier's checkpoint files of a job, or None (start over).
 
         A missing, half-written or inconsistent checkpoint set gives None with a warning.
+        Each file is read through once (to know it is whole), not kept in memory.
         """
         folder = self.folder(job_id) / CHECKPOINTS
         path = folder / MANIFEST
@@ -188,14 +284,16 @@ class JobStore:
             return None
         try:
             man = json.loads(path.read_text())
+            if man.get("format") != MANIFEST_FORMAT:
+                raise ValueError(f"manifest format {man.get('format', 1)}, this coordinator reads "
+                                 f"{MANIFEST_FORMAT}")
             cells = {}
-            for cell, files in man["cells"].items():
-                arrays: dict | None = None
-                for name in files:
-                    with np.load(folder / name, allow_pickle=False) as z:
-                        stored = {k: z[k] for k in z.files}
-                    arrays = decode_delta(stored, arrays)
-                cells[int(cell)] = arrays
+            for cell, name in man["cells"].items():
+                if not isinstance(name, str) or not _CELL_FILE.match(name):
+                    raise ValueError(f"cell {cell}: {name!r} is not a checkpoint file name")
+                if not {"radiosity", "unshot", "ledger"} <= ChunkFile.names(folder / name):
+                    raise ValueError(f"{name} lacks the subscene state")
+                cells[int(cell)] = folder / name
             return Resume(barrier=int(man["barrier"]), elapsed=float(man.get("elapsed_s", 0.0)), cells=cells)
         except Exception as exc:  # any damage: a warning and a fresh start, never a crash
             log.warning("job %s: checkpoints in %s are unreadable (%s: %s); the job starts over",
@@ -227,120 +325,33 @@ class StoredPreview:
 
 @dataclass
 class Resume:
-    """Checkpoints of every cell at one barrier, as ``RemoteSubscene.checkpoint`` dicts."""
+    """Every cell's checkpoint file at one barrier (``ChunkFile``, read by ``RemoteSubscene``)."""
 
     barrier: int
     elapsed: float  #: s the job had run when that barrier was reached
     cells: dict = field(default_factory=dict)
 
 
-# == incremental encoding ==================================================================
-def _shuffle(x: np.ndarray) -> bytes:
-    """Bytes grouped by significance (all first bytes, then all second bytes, ...): XOR deltas
-    of slowly changing floats are zero in their high bytes, which zlib then squeezes."""
-    b = np.ascontiguousarray(x).view(np.uint8).reshape(-1, x.dtype.itemsize)
-    return b.T.tobytes()
-
-
-def _unshuffle(blob: bytes, dtype, shape) -> np.ndarray:
-    itemsize = np.dtype(dtype).itemsize
-    b = np.frombuffer(blob, np.uint8).reshape(itemsize, -1)
-    return np.ascontiguousarray(b.T).view(dtype).reshape(shape)
-
-
-def encode_delta(arrays: dict, prev: dict | None) -> tuple[dict, str]:
-    """Arrays to store for one checkpoint given the previously stored one: (stored, kind).
-
-    kind is "full" (no usable previous) or "delta".  Only ``ROW_ARRAYS`` are encoded;
-    ``decode_delta(stored, prev)`` gives back ``arrays`` bit for bit.
-    """
-    usable = prev is not None and all(
-        k in prev and prev[k].shape == arrays[k].shape and prev[k].dtype == arrays[k].dtype
-        for k in ROW_ARRAYS if k in arrays)
-    out = {k: np.asarray(v) for k, v in arrays.items() if not (usable and k in ROW_ARRAYS)}
-    if not usable or prev is None:
-        out["_kind"] = np.array("full")
-        return out, "full"
-    for k in ROW_ARRAYS:
-        if k not in arrays:
-            continue
-        a, p = np.asarray(arrays[k]), prev[k]
-        bits = a.view(np.uint64) if a.dtype.itemsize == 8 else a.view(np.uint32)
-        pbits = p.view(bits.dtype)
-        xor = bits ^ pbits
-        rows = np.flatnonzero(xor.reshape(len(a), -1).any(axis=1)) if a.ndim else np.zeros(0, np.int64)
-        if len(rows) <= ROWS_MAX * len(a):
-            out[f"{k}@rows"] = rows.astype(np.int64)
-            out[f"{k}@values"] = a[rows]
-            continue
-        # compress only when cheap: a sample that does not shrink enough is not worth the whole
-        sample = xor[:SAMPLE_ROWS]
-        if len(zlib.compress(_shuffle(sample), 1)) <= COMPRESS_MAX * sample.nbytes:
-            packed = zlib.compress(_shuffle(xor), 1)
-            if len(packed) <= COMPRESS_MAX * a.nbytes:
-                out[f"{k}@xorz"] = np.frombuffer(packed, np.uint8)
-                continue
-        out[k] = a
-    out["_kind"] = np.array("delta")
-    return out, "delta"
-
-
-def decode_delta(stored: dict, prev: dict | None) -> dict:
-    """Invert ``encode_delta``: the checkpoint arrays from a stored file and the previous ones."""
-    kind = str(stored.get("_kind", np.array("full")))
-    if kind != "full" and prev is None:
-        raise ValueError("a checkpoint change with no full checkpoint before it")
-    out = {}
-    for k, v in stored.items():
-        if k == "_kind" or "@" in k:
-            continue
-        out[k] = v
-    if kind == "full":
-        return out
-    assert prev is not None  # a change without prev was refused above
-    for k in ROW_ARRAYS:
-        if k in out or k not in prev:
-            continue
-        p = prev[k]
-        if f"{k}@rows" in stored:
-            a = p.copy()
-            a[stored[f"{k}@rows"]] = stored[f"{k}@values"]
-        elif f"{k}@xorz" in stored:
-            pbits = p.view(np.uint64 if p.dtype.itemsize == 8 else np.uint32)
-            xor = _unshuffle(zlib.decompress(stored[f"{k}@xorz"].tobytes()), pbits.dtype, pbits.shape)
-            a = (pbits ^ xor).view(p.dtype)
-        else:  # not in this checkpoint
-            continue
-        out[k] = a
-    return out
-
-
 class CheckpointStats(TypedDict):
-    """``CheckpointWriter.stats``: barriers written and skipped (superseded), bytes on disk,
-    bytes a full checkpoint would have taken, seconds spent writing."""
+    """``CheckpointWriter.stats``: barriers made durable and skipped (superseded), bytes of
+    their files, seconds spent syncing them."""
 
     barriers: int
     skipped: int
     bytes: int
-    full_bytes: int
     seconds: float
-    per_barrier: list[tuple[int, int, int, float]]  # (barrier, bytes, full bytes, seconds)
-
-
-def _npz_bytes(arrays: dict) -> bytes:
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    return buf.getvalue()
+    per_barrier: list[tuple[int, int, float]]  # (barrier, bytes, seconds)
 
 
 # == the writer thread =====================================================================
 class CheckpointWriter:
-    """Writes a job's checkpoints in a thread; ``submit`` returns at once.
+    """Makes a job's checkpoint barriers durable in a thread; ``submit`` returns at once.
 
-    ``submit(barrier, {cell: arrays}, elapsed)`` queues the barrier (replacing any
-    barrier still waiting: only the newest matters).  ``close()`` writes what is
-    queued and stops the thread.  ``stats`` counts what was written: barriers,
-    bytes, seconds, and the bytes whole checkpoints would have taken.
+    ``submit(barrier, {cell: file}, elapsed)`` hands over the barrier's checkpoint files
+    (already written by the handles, see ``ChunkFile``), replacing any barrier still
+    waiting: only the newest matters.  The thread fsyncs the files, writes the manifest
+    naming them, and deletes the older cell files.  ``close()`` finishes what is
+    queued and stops the thread.  ``stats`` counts barriers, bytes and seconds.
     """
 
     def __init__(self, folder: Path, fsync: bool = True, start_barrier: int = 0):
@@ -351,19 +362,15 @@ class CheckpointWriter:
         self._cv = threading.Condition()
         self._closed = False
         self._busy = False
-        #: per cell: the arrays of the last file written, and the file chain since its full file
-        self._prev: dict[int, dict] = {}
-        self._chain: dict[int, list[tuple[str, int]]] = {}
-        self._full_bytes: dict[int, int] = {}
         self.barrier = start_barrier  #: the last barrier on disk
-        self.stats: CheckpointStats = {"barriers": 0, "skipped": 0, "bytes": 0, "full_bytes": 0, "seconds": 0.0,
-                                       "per_barrier": []}
+        self.stats: CheckpointStats = {"barriers": 0, "skipped": 0, "bytes": 0, "seconds": 0.0, "per_barrier": []}
         self.error: str = ""
         self._thread = threading.Thread(target=self._loop, name=f"checkpoints-{self.folder.parent.name}",
                                         daemon=True)
         self._thread.start()
 
-    def submit(self, barrier: int, cells: dict, elapsed: float = 0.0) -> None:
+    def submit(self, barrier: int, cells: dict[int, Path | None], elapsed: float = 0.0) -> None:
+        """cells: each cell's checkpoint file at this barrier (None: not on disk, so no manifest)."""
         with self._cv:
             if self._slot is not None:
                 self.stats["skipped"] += 1
@@ -404,49 +411,26 @@ class CheckpointWriter:
 
     def _write(self, barrier: int, cells: dict, elapsed: float) -> None:
         t0 = time.perf_counter()
-        written, whole = 0, 0
-        new_files = []
-        for cell, arrays in sorted(cells.items()):
-            if arrays is None:
-                continue
-            raw = sum(np.asarray(a).nbytes for a in arrays.values())
-            chain = self._chain.get(cell, [])
-            prev = self._prev.get(cell)
-            # close a chain of changes with a full file once it would outweigh one
-            if chain and sum(b for _, b in chain[1:]) >= self._full_bytes.get(cell, raw):
-                prev = None
-            stored, kind = encode_delta(arrays, prev)
-            blob = _npz_bytes(stored)
-            name = f"cell-{cell}-{barrier:06d}.npz"
-            atomic_write(self.folder / name, blob, fsync=False)
-            new_files.append(self.folder / name)
-            if kind == "full":
-                chain = []
-                self._full_bytes[cell] = len(blob)
-            chain = chain + [(name, len(blob))]
-            self._chain[cell] = chain
-            self._prev[cell] = {k: np.asarray(v) for k, v in arrays.items()}
-            written += len(blob)
-            whole += raw
-        if self.fsync:
-            for path in new_files:
-                fd = os.open(path, os.O_RDONLY)
-                try:
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
-        man = {"barrier": barrier, "elapsed_s": elapsed,
-               "cells": {str(c): [n for n, _ in ch] for c, ch in sorted(self._chain.items())}}
+        if any(p is None for p in cells.values()):
+            missing = sorted(c for c, p in cells.items() if p is None)
+            raise OSError(f"barrier {barrier}: the checkpoints of cells {missing} are not on disk")
+        paths = {c: Path(p) for c, p in cells.items()}
+        written = 0
+        for path in paths.values():
+            if self.fsync:
+                fsync_file(path)
+            written += path.stat().st_size
+        man = {"format": MANIFEST_FORMAT, "barrier": barrier, "elapsed_s": elapsed,
+               "cells": {str(c): p.name for c, p in sorted(paths.items())}}
         atomic_write(self.folder / MANIFEST, json.dumps(man).encode(), fsync=self.fsync)
         self.barrier = barrier
-        keep = {n for ch in self._chain.values() for n, _ in ch} | {MANIFEST}
-        for path in self.folder.iterdir():  # files no chain needs any more
-            if _CELL_FILE.match(path.name) and path.name not in keep:
+        for path in self.folder.iterdir():  # older barriers' files: no manifest names them now
+            m = _CELL_FILE.match(path.name)
+            if m and int(m.group(2)) < barrier:
                 path.unlink(missing_ok=True)
         dt = time.perf_counter() - t0
         st = self.stats
         st["barriers"] += 1
         st["bytes"] += written
-        st["full_bytes"] += whole
         st["seconds"] += dt
-        st["per_barrier"].append((barrier, written, whole, dt))
+        st["per_barrier"].append((barrier, written, dt))

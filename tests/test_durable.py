@@ -4,7 +4,7 @@ Real processes (coordinator.embedded.LocalCluster): a job that finished before t
 restart is still listed and fetchable; a job running at the kill resumes from its
 last checkpointed barrier on the workers that re-register, and ends bit-identical to
 an undisturbed run of the same job with a closed ledger.  A damaged job record is
-skipped with a warning.  The store's incremental encoding is exact.
+skipped with a warning.  Checkpoint files give back their arrays bit for bit.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import scenes
 from coordinator.embedded import LocalCluster
 from coordinator.jobs import JobManager
 from coordinator.remote import WorkerPool
-from coordinator.store import CheckpointWriter, JobRecord, JobStore, decode_delta, encode_delta
+from coordinator.store import CheckpointWriter, ChunkFile, JobRecord, JobStore, cell_file
 from dcrad.config import SolverConfig
 from dcrad.divide import (
     DivideConfig,
@@ -37,6 +37,7 @@ from dcrad.divide import (
 from dcrad.pipeline import prepare
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+from dcrad.wire import arrays_to_chunks
 
 SOLVER = {"tol": 0.002, "seed": 5}
 DIVIDE = {"subscenes": 2}
@@ -116,8 +117,8 @@ def test_damaged_records_are_skipped_with_a_warning(tmp_path, caplog):
     scenes.write_builtin("furnace", store.folder("running1") / "scene")
     ck = store.folder("running1") / "checkpoints"
     ck.mkdir()
-    (ck / "manifest.json").write_text(json.dumps({"barrier": 3, "cells": {"0": ["cell-0-000003.npz"]}}))
-    (ck / "cell-0-000003.npz").write_bytes(b"PK\x03\x04 half")
+    (ck / "manifest.json").write_text(json.dumps({"format": 2, "barrier": 3, "cells": {"0": "cell-0-000003.ck"}}))
+    (ck / "cell-0-000003.ck").write_bytes(ChunkFile.MAGIC + b"\x10\x00 half")
     with caplog.at_level(logging.WARNING, logger="dcrad.coordinator"):
         manager = JobManager(tmp_path, WorkerPool(), worker_wait=0.01)
     assert set(manager.jobs) == {"finished1", "running1"}
@@ -134,49 +135,55 @@ def test_damaged_records_are_skipped_with_a_warning(tmp_path, caplog):
     assert "no worker registered" in manager.jobs["running1"].error
 
 
-@pytest.mark.parametrize("change", ["none", "few_rows", "all_rows_small", "all_rows_random", "shape"])
-def test_incremental_checkpoints_are_exact(change):
-    rng = np.random.default_rng(1)
-    prev = {"radiosity": rng.random((500, 3)), "unshot": rng.random((500, 3)), "ledger": rng.random((10, 3))}
-    cur = {k: v.copy() for k, v in prev.items()}
-    if change == "few_rows":
-        cur["radiosity"][[3, 77]] += 1.0
-    elif change == "all_rows_small":
-        cur["radiosity"] *= 1 + 1e-9
-        cur["unshot"][:] = 0.0
-    elif change == "all_rows_random":
-        cur["radiosity"] = rng.random((500, 3))
-    elif change == "shape":
-        cur["radiosity"] = rng.random((400, 3))
-    stored, kind = encode_delta(cur, prev)
-    assert kind == ("full" if change == "shape" else "delta")
-    back = decode_delta(stored, prev)
-    assert set(back) == set(cur)
-    for k in cur:
-        assert back[k].dtype == cur[k].dtype and np.array_equal(back[k], cur[k]), k
-    raw = sum(v.nbytes for v in cur.values())
-    if change in ("none", "few_rows"):
-        assert sum(v.nbytes for v in stored.values()) < 0.1 * raw
+def _arrays(rng, n):
+    return {"radiosity": rng.random((n, 3)), "unshot": rng.random((n, 3)), "ledger": rng.random((10, 3)),
+            "stats": np.arange(5, dtype=np.int64), "rng_state": np.frombuffer(b'{"state": 1}', np.uint8),
+            "empty": np.zeros((0, 3), np.float32)}
 
 
-def test_checkpoint_writer_chain_reloads_exactly(tmp_path):
+def test_chunk_files_give_back_their_arrays_and_refuse_a_cut_one(tmp_path):
+    arrays = _arrays(np.random.default_rng(1), 300_000)  # several chunks per array
+    path = tmp_path / "a.ck"
+    nbytes, kept = ChunkFile.write(path, arrays_to_chunks(arrays), keep={"radiosity"})
+    assert nbytes == sum(a.nbytes for a in arrays.values())
+    assert set(kept) == {"radiosity"} and np.array_equal(kept["radiosity"], arrays["radiosity"])
+    back = ChunkFile.read(path)
+    assert set(back) == set(arrays)
+    for k, a in arrays.items():
+        assert back[k].dtype == a.dtype and back[k].shape == a.shape and np.array_equal(back[k], a), k
+    assert {c.name for c in ChunkFile.chunks(path, skip={"radiosity"})} == set(arrays) - {"radiosity"}
+    blob = path.read_bytes()
+    for cut in (len(blob) - 8, len(blob) // 2, 5):
+        (tmp_path / "cut.ck").write_bytes(blob[:cut])
+        with pytest.raises(ValueError, match="cut short|not a dcrad"):
+            ChunkFile.read(tmp_path / "cut.ck")
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_checkpoint_writer_manifest_reloads_exactly(tmp_path):
     rng = np.random.default_rng(2)
-    state = {0: {"radiosity": rng.random((300, 3)), "unshot": rng.random((300, 3))},
-             1: {"radiosity": rng.random((200, 3)), "unshot": rng.random((200, 3))}}
     store = JobStore(tmp_path / "jobs")
-    writer = CheckpointWriter(store.folder("j") / "checkpoints")
+    folder = store.folder("j") / "checkpoints"
+    folder.mkdir(parents=True)
+    writer = CheckpointWriter(folder)
     for barrier in range(1, 8):
-        state = {c: {"radiosity": a["radiosity"].copy(), "unshot": a["unshot"] * 0.5} for c, a in state.items()}
-        state[0]["radiosity"][barrier] += 1.0
-        writer.submit(barrier, state, float(barrier))
+        state = {c: _arrays(rng, n) for c, n in ((0, 300), (1, 200))}
+        files = {}
+        for c, arrays in state.items():
+            files[c] = folder / cell_file(c, barrier)
+            ChunkFile.write(files[c], arrays_to_chunks(arrays))
+        writer.submit(barrier, files, float(barrier))
         writer.flush()  # every barrier on disk, none skipped
     writer.close()
     res = store.resume("j")
     assert res is not None and res.barrier == 7 and res.elapsed == 7.0
     for c in state:
+        back = ChunkFile.read(res.cells[c])
         for k in state[c]:
-            assert np.array_equal(res.cells[c][k], state[c][k])
-    assert writer.stats["barriers"] == 7 and writer.stats["bytes"] < writer.stats["full_bytes"]
+            assert np.array_equal(back[k], state[c][k])
+    # only the last barrier's files are left
+    assert sorted(p.name for p in folder.glob("cell-*")) == [cell_file(0, 7), cell_file(1, 7)]
+    assert writer.stats["barriers"] == 7 and writer.stats["bytes"] > 0
 
 
 def test_checkpoint_arrays_resume_a_subscene_exactly(tmp_path):
