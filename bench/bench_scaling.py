@@ -31,7 +31,7 @@ import numpy as np
 
 import scenes
 from dcrad.config import DivideConfig, SolverConfig
-from dcrad.divide import SequentialExecutor, run_divided, subscene_specs
+from dcrad.divide import SequentialExecutor, expected_work, placement, run_divided, subscene_specs
 from dcrad.pipeline import prepare
 from dcrad.solve import Solver
 
@@ -52,12 +52,21 @@ def on_machines(per: np.ndarray, m: int, first) -> np.ndarray:
     return out
 
 
+def placed(per: np.ndarray, slots: list[int], m: int) -> np.ndarray:
+    """(barriers,) s: k subscenes on m machines, each kept on its slot (``divide.placement``)."""
+    load = np.zeros((m, per.shape[1]))
+    for i, j in enumerate(slots):
+        load[j] += per[i]
+    return load.max(axis=0)
+
+
 class Timed:
     """A subscene handle that times its own iterate and counts the bytes it hands over."""
 
     def __init__(self, sub):
         self.sub, self.cell, self.mode = sub, sub.cell, sub.mode
         self.seconds: list[float] = []  # per barrier
+        self.rays: list[int] = []  # per barrier
         self.sent: list[int] = []  # bytes collected per barrier
         self.received: list[int] = []  # bytes delivered per barrier
 
@@ -65,6 +74,7 @@ class Timed:
         t0 = time.process_time()
         rays = self.sub.iterate(n, plan)
         self.seconds.append(time.process_time() - t0)
+        self.rays.append(rays)
         return rays
 
     def collect(self):
@@ -95,6 +105,8 @@ def main(argv=None) -> int:
     ap.add_argument("--min-rays", type=int, default=SolverConfig().min_rays, help="fewest rays per patch shot")
     ap.add_argument("--direct", action="store_true",
                     help="k=1 gathers the direct light (divided runs shoot it; off by default: like for like)")
+    ap.add_argument("--max-iterations", type=int, default=DivideConfig().max_iterations,
+                    help="most batches per subscene between barriers (adaptive doIterations)")
     ap.add_argument("--gbps", type=float, default=1.0, help="link bandwidth, Gbit/s")
     ap.add_argument("--latency-ms", type=float, default=0.5, help="one round trip, ms")
     ap.add_argument("--service", action="store_true", help="also measure dcrad solve --workers 0 / 2")
@@ -119,7 +131,8 @@ def main(argv=None) -> int:
     rays1 = one.stats.rays
     print(f"k=1 (one process): {t1:.1f} CPU s, {rays1:,d} rays, residual {one.residual():.3g}", flush=True)
     head = (f"{'k':>3} {'setup s':>7} {'barriers':>8} {'rays/k1':>7} {'crit s':>7} {'sum s':>7} {'balance':>7} "
-            f"{'MB/barrier':>10} {'xchg s':>7} {'pred s':>7} {'speed-up':>8} {'eff':>5} {'on 2':>6}")
+            f"{'MB/barrier':>10} {'xchg s':>7} {'pred s':>7} {'speed-up':>8} {'eff':>5} {'on 2':>6} "
+            f"{'placed 2':>8} {'2: crit s':>9} {'2: Mrays':>8} {'2: ideal':>8}")
     print(head)
     for k in [int(x) for x in args.ks.split(",") if int(x) > 1]:
         _, q, _ = prepare(path, args.patch_size)
@@ -127,7 +140,8 @@ def main(argv=None) -> int:
         specs, boundaries, _, _ = subscene_specs(q, cfg, DivideConfig(subscenes=k))
         handles = [Timed(s.build()) for s in specs]
         setup = time.perf_counter() - t0
-        run = run_divided(handles, boundaries, cfg, DivideConfig().batches_per_barrier, SequentialExecutor())
+        per_barrier = DivideConfig(max_iterations=args.max_iterations).batches_per_barrier
+        run = run_divided(handles, boundaries, cfg, per_barrier, SequentialExecutor())
         per = np.array([h.seconds for h in handles])  # (k, barriers)
         moved = np.array([h.sent for h in handles]).sum(axis=0) if run.barriers else np.zeros(1)
         crit = per.max(axis=0)
@@ -136,14 +150,21 @@ def main(argv=None) -> int:
         balance = float(per.sum(axis=1).max() / per.sum(axis=1).mean())  # slowest subscene / mean
         speed = t1 / pred
         two = t1 / float((on_machines(per, 2, [len(h.sub.patches) for h in handles]) + xchg).sum())
+        slots = placement([expected_work(s.patches) for s in specs], 2)
+        crit2 = placed(per, slots, 2)
+        rays2 = placed(np.array([h.rays for h in handles], np.float64), slots, 2)
         print(f"{k:3d} {setup:7.1f} {run.barriers:8d} {run.snapshots[-1].rays / rays1:7.2f} "
               f"{crit.mean():7.3f} {per.sum():7.1f} {balance:7.2f} {moved.mean() / 1e6:10.2f} "
-              f"{xchg.sum():7.2f} {pred:7.2f} {speed:8.2f} {speed / k:5.0%} {two:6.2f}", flush=True)
+              f"{xchg.sum():7.2f} {pred:7.2f} {speed:8.2f} {speed / k:5.0%} {two:6.2f} "
+              f"{t1 / float((crit2 + xchg).sum()):8.2f} {crit2.sum():9.2f} {rays2.sum() / 1e6:8.1f} "
+              f"{per.sum() / 2:8.2f}", flush=True)
         del handles, specs
     print("crit s: mean per-barrier critical path (slowest subscene); sum s: all subscenes' iterate time; "
           "balance: slowest subscene's total / the mean; MB/barrier: crossing rays handed over; on 2: "
           "predicted speed-up of these k subscenes on 2 machines, assigned at each barrier by the "
-          "previous barrier's work (over-decomposition)")
+          "previous barrier's work (over-decomposition); placed 2: the same, each subscene kept on the machine "
+          "divide.placement gives it by expected work (its lamps); 2: crit s / Mrays: that placement's critical "
+          "path summed over barriers, in CPU s and in rays; 2: ideal: all iterates' CPU s / 2")
     if args.service:
         common = [f"office:rows={args.rows},cols={args.cols}", "--patch-size", str(args.patch_size),
                   "--tol", str(args.tol), "--rays-per-power", str(args.rays_per_power), "--width", "64",
