@@ -40,6 +40,8 @@ SAMPLES = 4
 #: previews: luminance above this (after exposure) rolls off toward white (tonemap)
 SHOULDER = 0.8
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
+#: render() shades this many hits at a time (bounded temporaries; the image does not depend on it)
+RENDER_CHUNK = 1 << 16
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -122,32 +124,32 @@ class Camera:
 
 
 # ---------------------------------------------------------------------------------
-def _position_groups(points: np.ndarray, tol: float):
-    """Group points by position on a grid of cell size ``tol``.
+def _position_groups(points: np.ndarray, tol: float, origin: np.ndarray):
+    """Group points by position on a grid of cell size ``tol`` whose cells are centred on
+    ``origin`` + integer multiples of ``tol``.
 
-    returns (order (m,) int64 sorting the points by group, group (m,) int64 id
-    per point, counts (G,) int64 points per group)
+    returns (group (m,) int64 id per point, G groups); ids follow the lexicographic order
+    of the cells, so sorting points by id sorts them by cell
     """
-    key = np.floor((points - points.min(axis=0)) / tol + 0.5).astype(np.int64)
-    # dense rank per axis, then one int64 key when the ranks fit (they nearly always do)
+    # dense rank per axis (one axis at a time: no (m, 3) temporaries), then one int64 key
+    # when the ranks fit (they nearly always do)
     ranks, sizes = [], []
     for ax in range(3):
-        u, r = np.unique(key[:, ax], return_inverse=True)
+        key = np.floor((points[:, ax] - origin[ax]) / tol + 0.5).astype(np.int64)
+        u, r = np.unique(key, return_inverse=True)
         ranks.append(r.reshape(-1).astype(np.int64))
         sizes.append(len(u))
     if float(sizes[0]) * sizes[1] * sizes[2] < 2.0**62:
         lin = (ranks[0] * sizes[1] + ranks[1]) * sizes[2] + ranks[2]
-        order = np.argsort(lin, kind="stable")
-        srt = lin[order]
-        new = np.concatenate([[True], srt[1:] != srt[:-1]])
+        u, group = np.unique(lin, return_inverse=True)
+        return group.reshape(-1).astype(np.int64), len(u)
     else:  # pragma: no cover - needs > 2^62 distinct coordinate triples
         order = np.lexsort((ranks[2], ranks[1], ranks[0]))
         srt = np.stack([r[order] for r in ranks], axis=1)
         new = np.concatenate([[True], np.any(srt[1:] != srt[:-1], axis=1)])
-    gid = np.cumsum(new) - 1
-    group = np.empty(len(points), np.int64)
-    group[order] = gid
-    return order, group, np.bincount(gid)
+        group = np.empty(len(points), np.int64)
+        group[order] = np.cumsum(new) - 1
+        return group, int(new.sum())
 
 
 def corner_radiosity(
@@ -155,7 +157,8 @@ def corner_radiosity(
     crease_angle_deg: float = 30.0,
     values: np.ndarray | None = None,
     merge_tol: float = 1e-7,
-    max_pairs: int = 1 << 20,
+    max_pairs: int = 1 << 18,
+    dtype=np.float64,
 ) -> np.ndarray:
     """Smooth per-corner radiosity that does not bleed across creases.
 
@@ -166,36 +169,53 @@ def corner_radiosity(
     facing away from each other (n_p . n_q <= 0, e.g. the two sides of a thin
     wall) never mix, whatever the angle.  Patches with no valid neighbour
     (degenerate) keep their own value.  Cost: sum over positions of
-    (corners there)^2 pairs, processed ``max_pairs`` at a time.
+    (corners there)^2 pairs, processed ``max_pairs`` at a time (the result does
+    not depend on it).  Means are computed in float64 and stored as ``dtype``:
+    float32 halves the result (1.27M patches, 6 channels: 91 MB instead of 183).
 
-    returns (n, 3 corners, C channels) float64, C = 3 for radiosity
+    returns (n, 3 corners, C channels) ``dtype``, C = 3 for radiosity
     """
     vals = patches.radiosity if values is None else values
     vals = np.asarray(vals, np.float64).reshape(len(patches), -1)
     n, nch = vals.shape
-    out = np.repeat(vals[:, None, :], 3, axis=1)
+    out = np.empty((n, 3, nch), dtype)
+    out[:] = vals[:, None, :]
     if n == 0:
         return out
-    corners = patches.triangles.reshape(-1, 3)
-    order, group, counts = _position_groups(corners, max(merge_tol * patches.scale, 1e-300))
-    m = len(corners)
+    tol = max(merge_tol * patches.scale, 1e-300)
+    faces = getattr(patches, "faces", None)
+    if faces is not None:  # positions grouped per mesh vertex (a vertex has ~5 corners), not per corner
+        vertices = patches.vertices
+        origin = patches.bounds[0]  # the corners' own minimum: the same cells as grouping the corners
+        vgroup, n_groups = _position_groups(vertices, tol, origin)
+        group = vgroup[np.asarray(faces).reshape(-1)]
+        del vgroup
+    else:
+        corners = patches.triangles.reshape(-1, 3)
+        group, n_groups = _position_groups(corners, tol, corners.min(axis=0))
+    m = len(group)
+    small = np.int32 if m < 2**31 else np.int64  # corner indices: half the bytes
+    order = np.argsort(group, kind="stable").astype(small)
+    counts = np.bincount(group, minlength=n_groups)
     starts = np.cumsum(counts) - counts
     gs = group[order]
-    k = counts[gs]  # partners of each sorted corner (itself included)
-    first = starts[gs]  # sorted position of its group's first corner
-    del gs, group, starts
-    ps = order // 3  # patch of each sorted corner
+    del group
+    k = counts[gs].astype(small)  # partners of each sorted corner (itself included)
+    first = starts[gs].astype(small)  # sorted position of its group's first corner
+    del gs, starts, counts
+    ps = (order // 3).astype(small)  # patch of each sorted corner
     normal, area = patches.normal, patches.area
     cos_t = math.cos(math.radians(min(max(crease_angle_deg, 0.0), 180.0))) - 1e-9
     flat = out.reshape(m, nch)
     # sorted corners in chunks of about max_pairs pairs; per-corner values are gathered per
     # chunk (whole-table copies of normals and values per corner were most of the outputs'
-    # memory at 1.27M patches: about 650 bytes a patch, now about 290 with ``out``)
-    ends = np.cumsum(k)
+    # memory at 1.27M patches)
+    ends = np.cumsum(k, dtype=np.int64)
     cuts = np.searchsorted(ends, np.arange(max_pairs, ends[-1], max_pairs), side="right")
     bounds = np.unique(np.concatenate([[0], cuts, [m]]))
+    del ends, cuts
     for lo, hi in zip(bounds[:-1], bounds[1:]):
-        kk = k[lo:hi]
+        kk = k[lo:hi].astype(np.int64)
         seg = np.cumsum(kk) - kk  # where each corner's run of pairs starts
         pb = ps[np.arange(int(kk.sum())) + np.repeat(first[lo:hi] - seg, kk)]  # partner's patch
         dot = np.einsum("ij,ij->i", np.repeat(normal[ps[lo:hi]], kk, axis=0), normal[pb])
@@ -223,7 +243,7 @@ def _escape_share(tracer: Tracer, lo: np.ndarray, hi: np.ndarray, axis: int, sig
     return float(np.mean(prim == MISS))
 
 
-def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
+def auto_camera(patches, width: int = 640, height: int = 480, tracer: Tracer | None = None) -> Camera:
     """A perspective view of the whole scene.
 
     Rays are cast from a grid on the mid-plane of the bounding box toward each
@@ -246,11 +266,17 @@ def auto_camera(patches, width: int = 640, height: int = 480) -> Camera:
       corner at 20% of the height, fov_y = 65 deg.  Of the four corners the one
       with the clearest line of sight from the room's centre is used.  Without
       lit floor the whole box is the room.
+
+    ``tracer``: a Tracer over ``patches.triangles`` to cast with (the solve's: at 1.27M
+    patches a second one cost 2 s and 160 MB at its build); None: build one.
     """
     lo, hi = patches.bounds
     ext = np.maximum(hi - lo, 1e-9 * patches.scale)
     c = 0.5 * (lo + hi)
-    tracer = Tracer(patches.triangles)
+    if tracer is None:
+        tracer = Tracer(patches.triangles)
+    elif tracer.n != len(patches):
+        raise ValueError(f"tracer holds {tracer.n} triangles, the table {len(patches)} patches")
     sides = [(0, 1.0), (0, -1.0), (2, 1.0), (2, -1.0)]
     escape = [_escape_share(tracer, lo, hi, ax, sg) for ax, sg in sides]
     best = int(np.argmax(escape))
@@ -404,8 +430,8 @@ def render(
 
     mask          : (n,) bool, patches to draw (default all)
     corner_values : (n, 3, C) values per corner for the *whole* table (default
-                    :func:`corner_radiosity`, C = 3); interpolated
-                    barycentrically over each hit triangle
+                    :func:`corner_radiosity`, C = 3), float64 or float32;
+                    interpolated barycentrically (in float64) over each hit triangle
     tracer        : a Tracer built on ``patches.triangles[mask]`` in that order
                     (reuse it across views); built here when None
     backface_color: RGB for pixels that see a one-sided patch from behind
@@ -423,8 +449,11 @@ def render(
     idx = np.arange(n) if mask is None else np.flatnonzero(np.asarray(mask, bool).reshape(n))
     if corner_values is None:
         corner_values = corner_radiosity(patches)
-    corner_values = np.asarray(corner_values, np.float64).reshape(n, 3, -1)
+    corner_values = np.asarray(corner_values)  # any float dtype: gathered per hit, interpolated in float64
+    corner_values = corner_values.reshape(n, 3, -1)
     nch = corner_values.shape[2]
+    # the front faces' luminance sets the flag colour only without a colour or an exposure
+    need_fronts = backface_color is None and not (exposure is not None and exposure > 0)
     if tracer is None:
         tracer = Tracer(patches.triangles[idx])
     elif tracer.n != len(idx):
@@ -435,29 +464,33 @@ def render(
     for jit in _jitter(samples):
         origins, dirs = camera.rays(jit)
         prim, t = tracer.intersect(origins, dirs)
-        img = np.zeros((len(prim), nch))
-        hit = np.flatnonzero(prim != MISS)
-        p = idx[prim[hit]]
-        back = np.einsum("ij,ij->i", dirs[hit], patches.normal[p]) > 0
-        if twin is not None:
-            other = twin[p]
-            seen = back & (other >= 0)
-            p = np.where(seen, other, p)  # a two-sided patch from behind: its back side
-            back &= ~seen
-        point = origins[hit] + t[hit, None] * dirs[hit]
-        bc = barycentric(patches.triangles[p], point)
-        img[hit] = np.einsum("ik,ikc->ic", bc, corner_values[p]) / math.pi
-        img[hit[back]] = 0.0  # shown as the flag colour below
-        fronts.append(img[hit[~back]])
-        total += img
+        hits = np.flatnonzero(prim != MISS)
         seen_back = np.zeros(len(prim), bool)
-        seen_back[hit[back]] = True
+        # shaded RENDER_CHUNK hits at a time: the gathered corners, triangles and barycentrics
+        # of a whole 640 x 480 view were 120 MB of temporaries; the pixels do not depend on it
+        for lo in range(0, len(hits), RENDER_CHUNK):
+            hit = hits[lo:lo + RENDER_CHUNK]
+            p = idx[prim[hit]]
+            back = np.einsum("ij,ij->i", dirs[hit], patches.normal[p]) > 0
+            if twin is not None:
+                other = twin[p]
+                seen = back & (other >= 0)
+                p = np.where(seen, other, p)  # a two-sided patch from behind: its back side
+                back &= ~seen
+            point = origins[hit] + t[hit, None] * dirs[hit]
+            bc = barycentric(patches.triangles[p], point)
+            value = np.einsum("ik,ikc->ic", bc, corner_values[p].astype(np.float64, copy=False)) / math.pi
+            value[back] = 0.0  # shown as the flag colour below
+            if need_fronts:
+                fronts.append(value[~back])
+            total[hit] += value
+            seen_back[hit[back]] = True
         backs.append(seen_back)
     if backface_color is None:
         if exposure is not None and exposure > 0:
             ref = 0.9 / exposure
         else:
-            front = luminance(np.concatenate(fronts)) if nch == 3 else np.zeros(0)
+            front = luminance(np.concatenate(fronts)) if nch == 3 and fronts else np.zeros(0)
             ref = float(np.percentile(front, 99.0)) if front.size else 0.0
         flag = np.resize(np.asarray(BACKFACE_COLOR), nch) * (ref if ref > 0 else 1.0)
     else:

@@ -299,6 +299,56 @@ def test_glb_has_vertex_colours(tmp_path, scene):
     assert b"KHR_materials_unlit" in raw
 
 
+def _glb_parts(data: bytes):
+    """(JSON tree, binary chunk) of a GLB file's bytes."""
+    import json
+    import struct
+
+    magic, version, length, clen, ctype = struct.unpack("<5I", data[:20])
+    assert (magic, version, length, ctype) == (0x46546C67, 2, len(data), 0x4E4F534A)
+    blen, btype = struct.unpack("<2I", data[20 + clen:28 + clen])
+    assert btype == 0x004E4942 and 28 + clen + blen == len(data)
+    return json.loads(data[20:20 + clen]), data[28 + clen:]
+
+
+@pytest.mark.parametrize("unlit", [True, False])
+def test_glb_is_what_trimesh_exports_for_the_same_mesh(tmp_path, scene, unlit, monkeypatch):
+    """write_glb streams its buffers in chunks; the file must be the one trimesh's exporter
+    writes for the same mesh and colours (but the generator), chunk boundaries anywhere."""
+    import trimesh
+
+    import dcrad.export as export
+
+    monkeypatch.setattr(export, "GLB_CHUNK", 7)  # 54 corners: 8 chunks, the last one short
+    rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # Y up to Z up
+    cv = corner_radiosity(scene).astype(np.float32)
+    exposure = write_glb(tmp_path / "s.glb", scene, cv, unlit=unlit, rotation=rot)
+    lin = cv.reshape(-1, 3).astype(np.float64) / math.pi
+    lum = lin @ [0.2126, 0.7152, 0.0722]
+    assert exposure == pytest.approx(0.9 / np.percentile(lum[lum > 0], 99.0), rel=1e-12)
+    rgba = np.full((len(lin), 4), 255, np.uint8)
+    rgba[:, :3] = tonemap(lin, exposure=exposure, srgb=False)
+    mesh = trimesh.Trimesh(vertices=scene.triangles.reshape(-1, 3) @ rot, faces=np.arange(len(lin)).reshape(-1, 3),
+                           vertex_colors=rgba, process=False, validate=False)
+
+    def unlit_material(tree):
+        tree["materials"] = [{"name": "radiosity", "pbrMetallicRoughness": {
+            "baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 1.0},
+            "doubleSided": False, "extensions": {"KHR_materials_unlit": {}}}]
+        tree["extensionsUsed"] = ["KHR_materials_unlit"]
+        for prim in tree["meshes"][0]["primitives"]:
+            prim["material"] = 0
+
+    ref = trimesh.exchange.gltf.export_glb(trimesh.Scene(mesh), include_normals=False,
+                                           tree_postprocessor=unlit_material if unlit else None)
+    tree, binary = _glb_parts((tmp_path / "s.glb").read_bytes())
+    ref_tree, ref_binary = _glb_parts(ref)
+    assert tree["asset"].pop("generator") == "dcrad"
+    ref_tree["asset"].pop("generator")
+    assert tree == ref_tree
+    assert binary == ref_binary
+
+
 def test_npz_area_weighted_per_input_triangle(tmp_path):
     # input triangle 0 -> 3 patches of areas 0.5, 0.25, 0.25; triangle 1 -> 1 patch;
     # triangle 2 dropped (no patch)
