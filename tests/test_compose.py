@@ -16,6 +16,10 @@ compose` v2 plugin), with the same docker-compose.yml:
   SIGTERM) after the first barrier: the other worker takes the subscene over from the last
   checkpoint and the job ends done, with the undisturbed run's result;
 - `up --scale worker=3` gives three registered workers;
+- a third job (the second's settings) has its coordinator restarted under it (`compose
+  restart coordinator`) after its second barrier: it resumes from the checkpoints in the
+  volume and ends done, bit for bit the second job's result; the first job, finished
+  before the restart, is still listed and fetchable;
 - `down -v` removes everything, whatever happened.
 
 Docker Engine is required: without `docker` or a running daemon these tests fail, they do
@@ -104,6 +108,12 @@ def live_workers(address: str) -> list[pb.WorkerInfo]:
     with grpc.insecure_channel(address) as ch:
         reply = pb_grpc.CoordinatorStub(ch).ListWorkers(pb.ListWorkersRequest(), timeout=5)
     return [w for w in reply.workers if w.alive]
+
+
+def list_jobs(address: str) -> dict[str, str]:
+    with grpc.insecure_channel(address) as ch:
+        reply = pb_grpc.CoordinatorStub(ch).ListJobs(pb.ListJobsRequest(), timeout=5)
+    return {j.job_id: j.state for j in reply.jobs}
 
 
 def wait_for(what: str, predicate, timeout: float, interval: float = 0.5):
@@ -323,6 +333,28 @@ def test_compose_stack(docker_engine, build_inputs, embedded, name, tmp_path):
         # -- scaling: the stopped worker comes back and a third one joins
         stack("up", "-d", "--scale", "worker=3", timeout=600)
         wait_for("three registered workers", lambda: len(live_workers(stack.address)) == 3, 120)
+
+        # -- job 3 (job 2's settings): restart the coordinator container after its second barrier
+        job3 = run([*DCRAD, "submit", SCENE, *JOB2, "--coordinator", stack.address]).stdout.split()[0]
+        with grpc.insecure_channel(stack.address) as ch:
+            for p in pb_grpc.CoordinatorStub(ch).Watch(pb.JobRef(job_id=job3), timeout=600):
+                if p.job.state == "running" and p.barrier >= 2:
+                    break
+        assert p.job.state == "running", "job 3 ended before its second barrier"
+        stack("restart", "coordinator", timeout=300)
+        listed = wait_for("the restarted coordinator", lambda: list_jobs(stack.address), 120)
+        assert listed[job1] == "done" and job3 in listed  # both jobs came back from the volume
+        final3 = client.watch(stack.address, job3)
+        assert final3.job.state == "done", final3.job.error
+        assert final3.ledger.closure < 1e-12
+        out3 = tmp_path / "job3"
+        client.fetch(stack.address, job3, out3)
+        report3 = json.loads((out3 / "report.json").read_text())
+        assert any(c.startswith("resumed from barrier") for c in report3["choices"]), report3["choices"]
+        assert np.array_equal(patch_b(out3), patch_b(out2))  # resumed: the same numbers, bit for bit
+        out1c = tmp_path / "job1-after-restart"
+        client.fetch(stack.address, job1, out1c)
+        assert (out1c / "radiosity.npz").read_bytes() == (out1 / "radiosity.npz").read_bytes()
         ok = True
         print(f"\n{name}: build {build_s:.1f} s, whole test {time.monotonic() - started:.1f} s; "
               f"job 2 reassigned {cell0.reassigned}, closure {final.ledger.closure:.1e}")
