@@ -167,7 +167,6 @@ def write_glb(
     if m >= 2**32:
         raise ValueError(f"{path}: {n} patches are more than glTF's uint32 indices can address")
     cv = np.asarray(corner_values).reshape(m, 3)
-    tri = patches.triangles.reshape(m, 3)
     chunks = [(lo, min(lo + GLB_CHUNK, m)) for lo in range(0, m, GLB_CHUNK)]
 
     def lin(lo, hi):
@@ -179,8 +178,9 @@ def write_glb(
         ref = float(np.percentile(lum, 99.0)) if lum.size else 0.0
         exposure = 0.9 / ref if ref > 0 else 1.0
 
-    def positions(lo, hi):
-        return _frame(tri[lo:hi], rotation).astype(np.float32)
+    def positions(lo, hi):  # corners lo..hi: those of patches lo // 3 .. (hi + 2) // 3, trimmed
+        tri = patches.corners(slice(lo // 3, (hi + 2) // 3)).reshape(-1, 3)[lo % 3:]
+        return _frame(tri[: hi - lo], rotation).astype(np.float32)
 
     rgba = np.full((m, 4), 255, np.uint8)  # 4 bytes a corner: kept, the positions are not
     pmin, pmax = np.full(3, np.inf, np.float32), np.full(3, -np.inf, np.float32)

@@ -124,7 +124,8 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     out.mkdir(parents=True, exist_ok=True)
     written = {}
     exposure = render.scene_exposure(patches)
-    tracer = tracer if tracer is not None else Tracer(patches.triangles)
+    tracer = tracer if tracer is not None else Tracer(patches.corners())
+    patches.release_corners()  # 72 bytes a patch; the outputs read corners a view or chunk at a time
     h, gathered = photometry.irradiance(patches, tracer)
     lux = photometry.to_lux(h)
     del h
@@ -164,7 +165,7 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
         mask = render.cutaway_mask(patches)
         both_img = render.render(patches, render.topdown_camera(patches, width, height), mask=mask,
                                  corner_values=both, samples=render.SAMPLES, backface_color=flag,
-                                 tracer=Tracer(patches.triangles[mask]))
+                                 tracer=Tracer(patches.corners(mask)))
         img = both_img[..., :3]
         export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure, shoulder=render.SHOULDER))
         export.write_exr(out / "preview_top.exr", img)

@@ -274,7 +274,7 @@ def auto_camera(patches, width: int = 640, height: int = 480, tracer: Tracer | N
     ext = np.maximum(hi - lo, 1e-9 * patches.scale)
     c = 0.5 * (lo + hi)
     if tracer is None:
-        tracer = Tracer(patches.triangles)
+        tracer = Tracer(patches.corners())
     elif tracer.n != len(patches):
         raise ValueError(f"tracer holds {tracer.n} triangles, the table {len(patches)} patches")
     sides = [(0, 1.0), (0, -1.0), (2, 1.0), (2, -1.0)]
@@ -455,7 +455,7 @@ def render(
     # the front faces' luminance sets the flag colour only without a colour or an exposure
     need_fronts = backface_color is None and not (exposure is not None and exposure > 0)
     if tracer is None:
-        tracer = Tracer(patches.triangles[idx])
+        tracer = Tracer(patches.corners(idx))
     elif tracer.n != len(idx):
         raise ValueError(f"tracer holds {tracer.n} triangles but the mask selects {len(idx)}")
     twin = getattr(patches, "twin", None)
@@ -478,7 +478,7 @@ def render(
                 p = np.where(seen, other, p)  # a two-sided patch from behind: its back side
                 back &= ~seen
             point = origins[hit] + t[hit, None] * dirs[hit]
-            bc = barycentric(patches.triangles[p], point)
+            bc = barycentric(patches.corners(p), point)
             value = np.einsum("ik,ikc->ic", bc, corner_values[p].astype(np.float64, copy=False)) / math.pi
             value[back] = 0.0  # shown as the flag colour below
             if need_fronts:

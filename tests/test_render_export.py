@@ -227,6 +227,34 @@ def test_topdown_cutaway():
     assert np.allclose(img[25, 25], 5.0 / math.pi)  # the floor in the middle
 
 
+def test_views_and_mesh_without_the_cached_corners_and_with_the_solves_tracer(tmp_path):
+    """The outputs drop the table's cached corner positions (Patches.release_corners) and
+    reuse the solve's Embree scene: the camera, the images and the GLB are the same, and
+    nothing they call rebuilds the cache."""
+    from dcrad.rays import Tracer
+
+    box = _box(open_front=False)
+    cam = auto_camera(box, 32, 24)
+    img = render(box, cam, samples=4)
+    mask = cutaway_mask(box)
+    top = render(box, topdown_camera(box, 32, 32), mask=mask)
+    write_glb(tmp_path / "cached.glb", box, corner_radiosity(box))
+    corners, area, normal = box.triangles.copy(), box.area.copy(), box.normal.copy()
+    box.release_corners()
+    assert "triangles" not in vars(box)
+    assert np.array_equal(box.corners(), corners) and np.array_equal(box.corners(mask), corners[mask])
+    assert auto_camera(box, 32, 24, tracer=Tracer(box.corners())) == cam
+    assert np.array_equal(render(box, cam, samples=4), img)
+    assert np.array_equal(render(box, topdown_camera(box, 32, 32), mask=mask), top)
+    write_glb(tmp_path / "released.glb", box, corner_radiosity(box))
+    assert (tmp_path / "released.glb").read_bytes() == (tmp_path / "cached.glb").read_bytes()
+    assert "triangles" not in vars(box)
+    assert np.array_equal(box.area, area) and np.array_equal(box.normal, normal)
+    assert np.array_equal(box.triangles, corners)  # rebuilt when read again
+    with pytest.raises(ValueError, match="tracer holds"):
+        auto_camera(box, 32, 24, tracer=Tracer(box.corners(mask)))
+
+
 def test_tonemap():
     img = np.zeros((10, 10, 3), np.float32)
     img[:5] = 2.0
