@@ -596,6 +596,7 @@ class JobManager:
             if job.preview.barrier != run.barriers:  # always show the final state
                 job.preview.render(patches.radiosity, run.barriers)
                 self.count(previews=1)
+            job.preview.close()  # its Embree scene goes before the outputs are written
             job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), run.barriers)
             timings["solve_s"] = run.wall_seconds
             books = divided_books(run, patches, config, boundaries, part, divide, timings)
@@ -612,6 +613,9 @@ class JobManager:
             if resume is not None:
                 books.choices.append(f"resumed from barrier {resume.barrier} after a coordinator restart "
                                      f"(checkpoints on disk)")
+            job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
+            for h in handles:  # the workers free the subscenes now, not after the outputs
+                h.drop()
             mem("assembly")
             books.divided["coordinator_rss_mb"] = dict(mem.phases)
             settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,

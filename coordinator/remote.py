@@ -389,12 +389,16 @@ class RemoteSubscene:
         return self._radiosity
 
     def drop(self) -> None:
+        """Free the subscene on its worker and what the handle holds (a second call does nothing)."""
         if self.worker is not None:
             try:
                 self._stub().Drop(self.key, timeout=10)
             except grpc.RpcError:
                 pass
             self.pool.release(self.worker)
+            self.worker = None
+        self._radiosity = np.zeros((0, 3))
+        self._static = None
         if self._own_folder is not None:
             self._own_folder.cleanup()
             self._own_folder = None

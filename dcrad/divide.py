@@ -614,8 +614,9 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
         # transferEnergy at the barrier
         incoming = {h.cell: h.collect() for h in handles}
         outgoing = mode.transfer(incoming, boundaries)
+        del incoming  # routed; each buffer is let go once delivered (a coordinator's memory)
         for h in handles:
-            h.deliver(outgoing[h.cell] if h.cell in outgoing else mode.empty())
+            h.deliver(outgoing.pop(h.cell) if h.cell in outgoing else mode.empty())
         run.barriers += 1
         led = barrier_snapshot([h.state() for h in handles])
         if on_barrier is not None:
