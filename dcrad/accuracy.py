@@ -18,6 +18,13 @@ estimated RMS error over the RMS of the reflected light B - E (noise.py).  While
   exact), at most ``MAX_PASSES`` passes.  A divided run stops on the floor and
   says so.
 
+A single-subscene run whose direct light is gathered from exact form factors
+follows a ``FinalPlan`` instead: it shoots the reflected light at a small share of
+the density, stops shooting once the bias is below BIAS_SHARE of the target
+(``final_gather``), gathers the reflected light again with many rays per receiver
+(final.py) and tops that gather up while the estimate is above the target
+(solve.Solver.finish); ``noise_floor`` then means the gather could not get there.
+
 With ``tol`` > 0 a run stops at that residual instead and ``accuracy`` is not
 used (it reads 0 in the resolved settings); ``rays_per_power`` is then 2e5
 unless given, as before the target existed.
@@ -30,7 +37,9 @@ import numpy as np
 from .config import SolverConfig
 
 __all__ = ["by_accuracy", "resolve", "rays_for", "LEGACY_TOL", "LEGACY_RAYS_PER_POWER", "MAX_PASSES",
-           "noise_floor", "residual_goal", "pass_target", "describe", "noise_floor_note"]
+           "noise_floor", "residual_goal", "pass_target", "describe", "noise_floor_note", "FinalPlan",
+           "final_plan", "SHOOT_SHARE", "FINAL_SHARE", "SHADOW_SHARE", "FINAL_MIN_RAYS", "SHOOT_FLOOR",
+           "SHADOW_FLOOR"]
 
 LEGACY_TOL = 0.01  #: residual tolerance when neither tol nor accuracy is set
 LEGACY_RAYS_PER_POWER = 2e5  #: ray density of runs that stop by tol
@@ -44,6 +53,48 @@ MAX_PASSES = 3  #: passes of one single-subscene run at most (the first one incl
 BIAS_SHARE = 0.25
 #: a later pass aims the blend at this share of the target
 MARGIN = 0.9
+
+
+#: A single-subscene run in accuracy mode whose direct light is gathered from exact form
+#: factors (direct.gather_analytic) spends the density d = rays_per_power differently: it
+#: shoots the reflected light at SHOOT_SHARE * d (coarse: the shot solution is only read),
+#: then gathers it again with FINAL_SHARE * d / patches rays per receiver (final.py), and
+#: gathers the direct light with SHADOW_SHARE * d / patches shadow rays per receiver.
+#: Measured on Cornell (23680 patches) and the office 3x3 (19884) at 1.3-1.4% of the
+#: reflected light: 3e5 rays per power shot with an 8-ray floor, 16-32 shadow rays and 256
+#: gather rays per patch were the cheapest mix (bench/RESULTS.md, issue 13 second session).
+SHOOT_SHARE = 0.02
+FINAL_SHARE = 0.2
+SHADOW_SHARE = 0.03
+#: floors: rays per emitted power per patch of the shooting, shadow rays per receiver (at 2% the
+#: shares alone left the office's shot solution and direct light too noisy for more gather rays
+#: to help: 6.3M rays for 1.99%, against 1.35% for 6.2M at 1.5%)
+SHOOT_FLOOR = 30.0
+SHADOW_FLOOR = 32
+#: fewest rays per patch shot in such a run (the shot solution is read by many gather rays,
+#: so a weak shot needs no 32 rays of its own: 8 cut Cornell's shooting rays 2x)
+FINAL_MIN_RAYS = 8
+
+
+class FinalPlan:
+    """How a final-gather run spends its density: power per ray of the shooting, rays per
+    receiver of the final gather and of the direct gather, the floor per shot."""
+
+    def __init__(self, config: SolverConfig, patches: int):
+        per_patch = config.rays_per_power / max(patches, 1)
+        self.shoot_rays_per_power = max(config.rays_per_power * SHOOT_SHARE, SHOOT_FLOOR * max(patches, 1), 1e3)
+        self.final_rays = int(min(max(2 * round(FINAL_SHARE * per_patch / 2), 16), 4096))
+        self.shadow_rays = config.shadow_rays or int(min(max(2 * round(SHADOW_SHARE * per_patch / 2),
+                                                             SHADOW_FLOOR), 512))
+        self.min_rays = min(config.min_rays, FINAL_MIN_RAYS)
+
+
+def final_plan(config: SolverConfig, patches: int) -> FinalPlan | None:
+    """The plan of a run that will gather its reflected light at the end, or None (tol mode,
+    no direct gather, or no final gather: ``direct`` off)."""
+    if not by_accuracy(config) or not config.direct:
+        return None
+    return FinalPlan(config, patches)
 
 
 def by_accuracy(config: SolverConfig) -> bool:

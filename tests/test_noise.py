@@ -16,6 +16,7 @@ from dcrad.accuracy import by_accuracy, rays_for, resolve
 from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, solve_divided
 from dcrad.energy import rms_error
+from dcrad.lights import light_polygons, polygon_form_factor
 from dcrad.noise import NoiseSums, NoiseTally, combine, half_mask, split_power
 from dcrad.passes import solve_to_accuracy
 from dcrad.patches import Patches
@@ -175,3 +176,85 @@ def test_commit_increments_equal_the_sums_recomputed_from_the_arrays():
     assert (s.d2, s.b2, s.r2) == pytest.approx((d2, b2, r2), rel=1e-13) and s.r1 == pytest.approx(r1, rel=1e-13)
     tally.commit(p, landing(p, np.zeros(0, np.int64), np.zeros((0, 3))), np.zeros((0, 3)))  # empty batch
     assert tally.sums().as_list() == s.as_list()
+
+
+def _corner_form_factor(a: float, b: float) -> float:
+    """Closed form: differential area under a corner of a parallel a x b rectangle at height 1."""
+    x, y = a / math.sqrt(1 + a * a), b / math.sqrt(1 + b * b)
+    return (x * math.atan(b / math.sqrt(1 + a * a)) + y * math.atan(a / math.sqrt(1 + b * b))) / (2 * math.pi)
+
+
+def test_polygon_form_factor_against_closed_forms():
+    """Lambert's contour formula (lights.py) against the corner formula for a parallel rectangle,
+    a loop of many collinear pieces, and horizon clipping: a huge light overhead fills a
+    receiver's whole hemisphere (F = 1), and half of it for a receiver standing upright."""
+    down = np.array([[0.0, 0.0, -1.0]])
+    up = np.array([[0.0, 0.0, 1.0]])
+    rect = np.array([[[0.0, 0.0, 1.0], [0.0, 2.0, 1.0], [1.5, 2.0, 1.0], [1.5, 0.0, 1.0]]])  # ccw about -z
+    f = polygon_form_factor(np.zeros((1, 3)), up, rect, down)[0]
+    assert f == pytest.approx(_corner_form_factor(1.5, 2.0), rel=1e-12)
+    centred = rect - np.array([0.75, 1.0, 0.0])
+    f = polygon_form_factor(np.zeros((1, 3)), up, centred, down)[0]
+    assert f == pytest.approx(4 * _corner_form_factor(0.75, 1.0), rel=1e-12)
+    # the same rectangle with each edge cut into collinear pieces
+    pieces = np.concatenate([np.linspace(rect[0, k], rect[0, (k + 1) % 4], 5)[:-1] for k in range(4)])[None]
+    assert polygon_form_factor(np.zeros((1, 3)), up, pieces, down)[0] == pytest.approx(_corner_form_factor(1.5, 2.0),
+                                                                                       rel=1e-12)
+    big = np.array([[[-1e5, -1e5, 1.0], [-1e5, 1e5, 1.0], [1e5, 1e5, 1.0], [1e5, -1e5, 1.0]]])
+    assert polygon_form_factor(np.zeros((1, 3)), up, big, down)[0] == pytest.approx(1.0, abs=1e-4)
+    side = np.array([[1.0, 0.0, 0.0]])
+    assert polygon_form_factor(np.zeros((1, 3)), side, big, down)[0] == pytest.approx(0.5, abs=1e-4)
+    # behind the light, or the light below the horizon: nothing
+    assert polygon_form_factor(np.array([[0.0, 0.0, 2.0]]), down, rect, down)[0] == 0.0
+    assert polygon_form_factor(np.zeros((1, 3)), -up, rect, down)[0] == 0.0
+
+
+def test_cornell_light_is_one_parallelogram(tmp_path):
+    """The Cornell light's 128 patches become one light: its outline, 4 corners, a parallelogram."""
+    from scenes.cornell import cornell_box
+
+    _, p, _ = prepare(cornell_box(tmp_path))
+    em = np.flatnonzero(p.emission.any(axis=1))
+    lights = light_polygons(p, em, p.emission[em] * p.area[em, None])
+    assert lights is not None and len(lights) == 1 and lights.loops.shape == (1, 4, 3)
+    assert lights.parallelogram is not None and lights.parallelogram[0]
+    assert lights.area[0] == pytest.approx(p.area[em].sum(), rel=1e-12)
+
+
+def test_final_gather_keeps_the_books_and_its_estimate_is_honest(uniform_furnace):
+    """Accuracy mode with the direct light gathered: the reflected light is shot coarsely and
+    gathered again (final.py).  The estimate is within 1.5 of the exact error, the target is
+    met, the ledger closes, and the same seed gives the same B."""
+    patches, tracer = uniform_furnace
+    runs = []
+    for _ in range(2):
+        patches.reset()
+        s = solve_to_accuracy(patches, SolverConfig(seed=13, accuracy=0.05), tracer)
+        runs.append(patches.radiosity.copy())
+    assert any(c.startswith("final gather") for c in s.choices), s.choices
+    assert s.stats.stopped_by == "accuracy"
+    est = s.estimate()
+    err, err_refl = measured(patches)
+    assert 1 / 1.5 < est.rms / err < 1.5, (est, err)
+    assert err_refl < 1.5 * 0.05
+    assert s.ledger.closure() < 1e-9
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_a_final_gather_round_moves_reflected_light_but_not_its_total(uniform_furnace):
+    """A round of the final gather changes B patch by patch; sum A (B - E) per channel and every
+    ledger account stay as the shooting left them."""
+    patches, tracer = uniform_furnace
+    patches.reset()
+    s = Solver(patches, SolverConfig(seed=3, tol=1e-3, rays_per_power=2e4, direct=True), tracer=tracer)
+    s.run()
+    assert s.direct_light is not None
+    before = patches.radiosity.copy()
+    books = s.ledger.copy().as_arrays()
+    total = ((before - patches.emission) * patches.area[:, None]).sum(axis=0)
+    assert s.final(32) == 32 * len(patches)
+    after = ((patches.radiosity - patches.emission) * patches.area[:, None]).sum(axis=0)
+    np.testing.assert_allclose(after, total, rtol=1e-12)
+    assert np.abs(patches.radiosity - before).max() > 0
+    for name, value in s.ledger.as_arrays().items():
+        np.testing.assert_array_equal(value, books[name])
