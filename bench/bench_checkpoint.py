@@ -32,7 +32,8 @@ from dcrad.divide import DivideConfig, build_subscenes, checkpoint_arrays, run_d
 from dcrad.pipeline import prepare
 from dcrad.wire import arrays_to_chunks
 
-ROWS = ("radiosity", "unshot")
+#: the per-patch arrays the old incremental encoding stored as changes
+ROWS = ("radiosity", "unshot", "noise_diff", "noise_unshot")
 
 
 def _delta_bytes(cur: np.ndarray, prev: np.ndarray) -> tuple[int, int]:
@@ -84,8 +85,10 @@ def main() -> None:
                         c, z = _delta_bytes(now[k], prev[s.cell][k])
                         changed, total, delta, raw = changed + c, total + len(now[k]), delta + z, raw + now[k].nbytes
                 prev[s.cell] = now
+            # bytes a delta of the per-patch arrays would have saved, as a share of the checkpoint
+            saved = (raw - delta) / nbytes if raw else float("nan")
             rows.append((run.barriers, nbytes, changed / total if total else float("nan"),
-                         delta / raw if raw else float("nan"), held))
+                         delta / raw if raw else float("nan"), held, saved))
 
         t0 = time.perf_counter()
         run = run_divided(subs, bnds, config, divide.batches_per_barrier, on_barrier=on_barrier)
@@ -99,12 +102,16 @@ def main() -> None:
 
         print(f"office:rows={args.rows},cols={args.cols}: {len(patches)} patches, {len(subs)} subscenes, "
               f"{run.barriers} barriers, fsync {'off' if args.no_fsync else 'on'}, load {os.getloadavg()[0]:.2f}")
-        print(f"{'barrier':>7} {'ckpt MB':>8} {'rows changed':>12} {'xor+zlib/raw':>12} {'loop held s':>11} "
-              f"{'writer s':>8}")
+        print(f"{'barrier':>7} {'ckpt MB':>8} {'rows changed':>12} {'xor+zlib/raw':>12} {'delta saves':>11} "
+              f"{'loop held s':>11} {'writer s':>8}")
         sync = {b: dt for b, _, dt in writer.stats["per_barrier"]}
-        for b, nbytes, changed, delta, held in rows:
-            print(f"{b:7d} {nbytes / 1e6:8.2f} {changed:12.3f} {delta:12.3f} {held:11.4f} "
+        for b, nbytes, changed, delta, held, saved in rows:
+            print(f"{b:7d} {nbytes / 1e6:8.2f} {changed:12.3f} {delta:12.3f} {saved:11.3f} {held:11.4f} "
                   f"{sync.get(b, float('nan')):8.4f}")
+        later = [r for r in rows if r[5] == r[5]]  # barriers with a previous one
+        if later:
+            share = sum(r[5] * r[1] for r in later) / sum(r[1] for r in later)
+            print(f"a delta of {', '.join(ROWS)} would save {share:.1%} of the checkpoint bytes past barrier 1")
         held = sum(r[4] for r in rows)
         st = writer.stats
         print(f"total: {sum(r[1] for r in rows) / 1e6:.1f} MB of checkpoints; file writes held the barrier loop "

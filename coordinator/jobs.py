@@ -593,6 +593,9 @@ class JobManager:
                                          [h.radiosity() for h in handles])
             unshot = [h.saved_arrays({"unshot"})["unshot"] for h in handles]
             patches.unshot = assemble(len(patches), patches.area, parents, pieces, unshot)
+            del unshot
+            parents.clear()  # assembled: the outputs need the patch table only
+            pieces.clear()
             if job.preview.barrier != run.barriers:  # always show the final state
                 job.preview.render(patches.radiosity, run.barriers)
                 self.count(previews=1)

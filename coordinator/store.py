@@ -205,6 +205,8 @@ class JobRecord:
     residual: float = 1.0
     #: the DivideConfig the job runs with, once it has started (a resume must cut the same way)
     divide: dict | None = None
+    #: the workers' addresses at the end (the job list shows them after a restart too)
+    workers: list = field(default_factory=list)
 
     def to_json(self) -> bytes:
         plain = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "spec"}
@@ -223,7 +225,8 @@ class JobRecord:
             rec = cls(id=str(d["id"]), spec=spec, state=str(d["state"]), error=str(d.get("error", "")),
                       created=float(d.get("created", 0.0)), started=float(d.get("started", 0.0)),
                       finished=float(d.get("finished", 0.0)), subscenes=int(d.get("subscenes", 0)),
-                      residual=float(d.get("residual", 1.0)), divide=d.get("divide"))
+                      residual=float(d.get("residual", 1.0)), divide=d.get("divide"),
+                      workers=[str(w) for w in d.get("workers", [])])
         except ValueError:
             raise
         except Exception as exc:  # KeyError, TypeError, binascii/protobuf decode errors

@@ -78,6 +78,7 @@ def test_coordinator_sigkill_mid_job_resumes_bit_identical(tmp_path):
         with grpc.insecure_channel(cluster.address) as ch:
             listed = {j.job_id: j for j in pb_grpc.CoordinatorStub(ch).ListJobs(pb.ListJobsRequest()).jobs}
         assert listed[ref.job_id].state == "done" and job.job_id in listed
+        assert listed[ref.job_id].workers == ref_final.job.workers  # kept in its record
         again = fetch(cluster.address, ref.job_id)  # the finished job survived the restart
         assert bytes(again["radiosity.npz"]) == bytes(ref_files["radiosity.npz"])
         with urllib.request.urlopen(f"{cluster.web_url}/jobs/{ref.job_id}/preview.png", timeout=30) as r:
