@@ -654,7 +654,9 @@ def check_subscenes(k: int, n_patches: int) -> None:
 AUTO_DIVIDE_PATCHES = 150_000
 #: subscenes per worker when --subscenes is not given: over-decomposed, so one worker's two
 #: subscenes even out (office 8x8 on 2 workers: 238 s with 2 subscenes, 192 s with 4;
-#: bench_scaling's model on the 3x3 office: 1.27x and 2.05x on 2 machines)
+#: bench_scaling's model on the 3x3 office: 1.27x and 2.05x on 2 machines).  Four per worker
+#: (office 8x8, 2 workers) pays only when placed by expected work (``placement``: 2-worker
+#: critical path 165M rays, round-robin 183M) and then ties two per worker (163M) with more rays
 SUBSCENES_PER_WORKER = 2
 
 #: expected_work: W of emitted power a patch counts as (a cell with no lamp still shoots
