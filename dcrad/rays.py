@@ -55,15 +55,19 @@ class Tracer:
         self.scale = max(float(np.linalg.norm(hi - lo)), 1e-300)
         #: exact float32 conversion at any size: Embree sees a box of diagonal in [0.7, 1.4]
         self.unit = float(np.ldexp(1.0, int(np.round(np.log2(self.scale))))) if self.n else 1.0
-        local = (tri - self.center) / self.unit
         if backend == "embree":
             self._scene = _rtcs.EmbreeScene()
             if self.n:
-                verts = local.reshape(-1, 3).astype(np.float32)
+                # shifted, scaled and rounded to float32 in chunks: no whole float64 copy
+                # (70 MB at 1.27M triangles; the same numbers as converting it whole)
+                flat = tri.reshape(-1, 3)
+                verts = np.empty(flat.shape, np.float32)
+                for lo in range(0, len(flat), 1 << 18):
+                    verts[lo:lo + (1 << 18)] = (flat[lo:lo + (1 << 18)] - self.center) / self.unit
                 faces = np.arange(3 * self.n, dtype=np.int32).reshape(-1, 3)
                 _TriangleMesh(self._scene, verts, faces)
         else:
-            self._tri = local
+            self._tri = (tri - self.center) / self.unit
 
     # ------------------------------------------------------------------------------
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, normals: bool = False):
