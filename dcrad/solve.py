@@ -453,6 +453,9 @@ class Solver:
         full, half_a = np.zeros((len(p), 3)), np.zeros((len(p), 3))
         full[tally.hit], half_a[tally.hit] = tally.received, tally.received_a
         self.direct_light = (full, half_a)
+        self.choices.append(f"direct light gathered ({how} {shadow} shadow rays per receiving patch, "
+                            f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
+                            f"the emitters book how much of it lands, escapes or meets back faces")
         if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
             self.final_rays = plan.final_rays
             self.power_per_ray = float(self.ledger.emitted.sum()) / plan.shoot_rays_per_power
@@ -460,9 +463,6 @@ class Solver:
             self.choices.append(f"reflected light shot at {plan.shoot_rays_per_power:.3g} rays per emitted power "
                                 f"(at least {plan.min_rays} rays a shot), then gathered again with "
                                 f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
-        self.choices.append(f"direct light gathered ({how} {shadow} shadow rays per receiving patch, "
-                            f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
-                            f"the emitters book how much of it lands, escapes or meets back faces")
         return self.counted(len(emitters), gathered.rays + int(counts.sum()))
 
     def final_pending(self) -> bool:
