@@ -1,4 +1,5 @@
-"""File writers: images through OpenImageIO, meshes through trimesh, arrays as npz.
+"""File writers: images through OpenImageIO, the PLY through trimesh, the GLB in trimesh's layout
+written in chunks here (write_glb), arrays as npz.
 
 Every writer creates missing parent directories and raises ``OSError`` naming
 the path when the file cannot be written.
