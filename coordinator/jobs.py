@@ -39,6 +39,8 @@ from dcrad.divide import (
     DivideConfig,
     assemble,
     check_subscenes,
+    expected_work,
+    placement,
     run_divided,
     subscene_limit,
     subscene_specs,
@@ -544,8 +546,13 @@ class JobManager:
         writer = CheckpointWriter(folder, start_barrier=resume.barrier if resume else 0)
         display = None
         try:
-            for h in handles:
-                h.place()
+            # subscenes on workers by expected work (their lamps' power and patch count: LPT,
+            # divide.placement), so no worker carries the two brightest cells; results do not
+            # depend on it, only which worker waits at a barrier
+            workers = self.pool.live()
+            slots = placement([expected_work(s.patches) for s in subs], len(workers)) if workers else []
+            for i, h in enumerate(handles):
+                h.place(prefer=workers[slots[i]] if workers else None)
             timings["setup_s"] = time.perf_counter() - t0  # partition, clip, load on the workers
             job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
             # the pieces' patches are on the workers (and in static-K.ck): keep their areas only

@@ -121,6 +121,14 @@ class WorkerPool:
             w.load += 1
             return w
 
+    def take(self, w: WorkerEntry) -> bool:
+        """Count one more subscene on ``w`` if it is alive (False: it is not)."""
+        with self._lock:
+            if not w.alive:
+                return False
+            w.load += 1
+            return True
+
     def release(self, w: WorkerEntry) -> None:
         with self._lock:
             w.load = max(0, w.load - 1)
@@ -277,11 +285,15 @@ class RemoteSubscene:
         self._status = w.stub().Load(requests(), timeout=self.timeout)
         self.rpc_seconds["load"] += time.perf_counter() - t0
         self.worker = w
-    def place(self) -> None:
-        """Load on the least busy live worker, moving on when one fails."""
+    def place(self, prefer: WorkerEntry | None = None) -> None:
+        """Load on ``prefer`` (the job's placement by expected work) if it is alive, else on
+        the least busy live worker, moving on when one fails."""
         tried: set[str] = set()
         while True:
-            w = self.pool.pick(exclude=tried)
+            if prefer is not None and prefer.address not in tried and self.pool.take(prefer):
+                w = prefer
+            else:
+                w = self.pool.pick(exclude=tried)
             try:
                 self._load(w)
                 return

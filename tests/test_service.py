@@ -23,7 +23,7 @@ import pytest
 import scenes
 from coordinator.embedded import LocalCluster
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, solve_divided
+from dcrad.divide import DivideConfig, expected_work, placement, solve_divided, subscene_specs
 from dcrad.pipeline import prepare
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
@@ -106,13 +106,13 @@ def test_two_workers_reproduce_the_in_process_solution(office, in_process, tmp_p
 def run_killing_at_first_barrier(cluster, folder, name, solver, divide, cell=0):
     """Submit a job, kill the worker that holds ``cell`` once the first barrier is reported,
     and watch it to the end: (the last progress, the fetched files, [killed worker],
-    [the worker of every subscene at barrier 1])."""
+    {cell: its worker at barrier 1})."""
     job = submit(cluster.address, folder, name, solver, divide)
-    killed, placed = [], []
+    killed, placed = [], {}
 
     def on_progress(pr):
         if pr.barrier == 1 and not killed and pr.job.state == "running":
-            placed.extend(s.worker for s in pr.subscenes)
+            placed.update({s.cell: s.worker for s in pr.subscenes})
             victim = next(s.worker for s in pr.subscenes if s.cell == cell)
             cluster.kill_worker(cluster.worker_ports.index(int(victim.rsplit(":", 1)[1])))
             killed.append(victim)
@@ -145,9 +145,13 @@ def test_over_decomposed_job_survives_a_killed_worker(office, tmp_path):
         final, files, killed, placed = run_killing_at_first_barrier(
             cluster, office, "office.obj", {"tol": 0.005, "seed": 3}, {"subscenes": 4})
     assert killed and final.job.state == "done", final.job.error
-    assert len(placed) == 4 and len(set(placed)) == 2  # over-decomposed: two subscenes per worker
-    assert {s.worker for s in final.subscenes} == set(placed) - set(killed)  # one survivor holds all
-    assert sum(s.reassigned for s in final.subscenes) == placed.count(killed[0]) == 2
+    assert len(placed) == 4 and len(set(placed.values())) == 2  # over-decomposed: both workers hold some
+    # placed by expected work (divide.placement of the cells' lamps and patches), as in process
+    subs, *_ = subscene_specs(p, SolverConfig(tol=0.005, seed=3), DivideConfig(subscenes=4))
+    slots = placement([expected_work(s.patches) for s in subs], 2)
+    assert len({(slots[c], w) for c, w in placed.items()}) == 2  # same grouping of cells
+    assert {s.worker for s in final.subscenes} == set(placed.values()) - set(killed)  # one survivor holds all
+    assert sum(s.reassigned for s in final.subscenes) == list(placed.values()).count(killed[0])
     assert final.ledger.closure < 1e-10 and final.barrier == run.barriers
     assert np.allclose(npz(files)["patch_B"], p.radiosity, rtol=1e-12, atol=1e-15)
 
