@@ -60,7 +60,7 @@ from .shoot import Tally
 
 __all__ = ["DirectTally", "gather_direct", "shadow_rays_for", "noise_against_shooting", "landing_rays",
            "rescale_to_landed", "merge", "PILOT_SHARE", "GATHER_MARGIN", "gather_analytic", "light_pairs",
-           "pair_form_factors", "MAX_PAIRS", "analytic_lights"]
+           "pair_form_factors", "MAX_PAIRS", "analytic_lights", "light_lists", "LightLists", "FAR_BOUND"]
 
 #: share of the receivers (at random) gathered first to decide whether gathering beats shooting
 PILOT_SHARE = 0.125
@@ -289,54 +289,244 @@ def merge(a: DirectTally, b: DirectTally, patches: Patches) -> DirectTally:
 
 
 # == direct light from exact form factors ========================================================
-#: (receiver, light loop) pairs tested above which the analytic gather is not used (the sampled one is)
-MAX_PAIRS = 20_000_000
+#: expected (receiver, light) pair entries per receiver above which the analytic gather is not
+#: used (the sampled one is): CPU time, about 10 us a pair (memory is bounded: CHUNK_PAIRS)
+MAX_PAIRS = 64
+#: a light whose form factor from every point of a receiver's cell is bounded below this is a
+#: far light of that cell: its pairs there are kept by Russian roulette, with probability
+#: bound / FAR_BOUND per half, weighted by the inverse (unbiased; the halves draw apart, so the
+#: noise estimate sees the roulette's noise).  The office's lamps of rooms further than about
+#: two rooms away are far: 67 pairs a receiver on the 8x8 office without it, the lamps of all rooms
+FAR_BOUND = 2e-3
+#: receiver cells of the light lists: this share of the scene's bounding-box diagonal
+LIST_CELL = 1.0 / 64.0
+#: cell-light bounds evaluated at once (bounded memory)
+_BLOCK = 1 << 21
 
 
-def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, chunk: int = 4096):
-    """(receiver slot (q,), light (q,)) of every pair that can exchange light: some corner of the
-    receiver in front of a loop's plane and some vertex of that loop above the receiver's plane."""
+@dataclass
+class LightLists:
+    """Receiver-local light lists: the receivers in grid cells and, per cell and light, the
+    chance q a pair is kept (1 near, bound / FAR_BOUND far, 0 where the cell is behind the light)."""
+
+    order: np.ndarray  #: (k,) receiver slots sorted by cell
+    start: np.ndarray  #: (C,) first entry of each cell in ``order``
+    count: np.ndarray  #: (C,) receivers in each cell
+    cell: np.ndarray  #: (m,) the cell of each listed (cell, light)
+    light: np.ndarray  #: (m,) its light
+    q: np.ndarray  #: (m,) keep chance per half, in (0, 1]
+
+    def expected_pairs(self) -> float:
+        """Expected pair entries (a near pair is one entry, a far one draws per half)."""
+        n = self.count[self.cell].astype(np.float64)
+        return float(np.where(self.q >= 1.0, n, 2.0 * n * self.q).sum())
+
+
+def light_lists(patches: Patches, lights: Lights, receivers: np.ndarray) -> LightLists:
+    """The lights each grid cell of receivers can see non-negligibly (``LightLists``), from a bound
+    of the unoccluded form factor from anywhere in the cell's box of receiver corners to a light:
+    F <= A_L h hx / (pi d^4), d the distance between the cell's box and the light's, h the greatest
+    height of the cell's box above the light's plane (cos of the light's angle <= h / d), hx a
+    bound of n_x . (y - x) by interval arithmetic over the cell's normals and the boxes (the
+    receiver's cos <= hx / d), r >= d.  Cells are grid cells split by the receivers' facing
+    (six cube faces), so the normals of a cell are close.  Never forms receivers x lights."""
     v = patches.vertices
-    origin = lights.loops[:, 0]
-    ny = lights.normal[lights.loop_light]
-    offset = (origin * ny).sum(axis=1)
-    slots, found = [], []
-    for lo in range(0, len(receivers), chunk):
-        rec = receivers[lo:lo + chunk]
-        corners = v[patches.faces[rec]]  # (k,3,3)
-        nrm = patches.normal[rec]
-        front = (np.einsum("kcj,pj->kcp", corners, ny) > offset[None, None, :]).any(axis=1)
-        above = (np.einsum("pvj,kj->kpv", lights.loops, nrm)
-                 > (corners[:, 0] * nrm).sum(axis=1)[:, None, None]).any(axis=2)
-        k_idx, loop = np.nonzero(front & above)
-        code = np.unique((lo + k_idx) * len(lights) + lights.loop_light[loop])
-        slots.append(code // len(lights))
-        found.append(code % len(lights))
-    if not slots:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(slots), np.concatenate(found)
+    k = len(receivers)
+    lo_r = np.empty((k, 3))
+    hi_r = np.empty((k, 3))
+    for a in range(0, k, 1 << 18):  # receivers' corner boxes, in chunks
+        c = v[patches.faces[receivers[a:a + (1 << 18)]]]
+        lo_r[a:a + len(c)], hi_r[a:a + len(c)] = c.min(axis=1), c.max(axis=1)
+    box = patches.bounds
+    size = max(float(np.linalg.norm(box[1] - box[0])) * LIST_CELL, 1e-300)
+    idx = np.floor((0.5 * (lo_r + hi_r) - box[0]) / size).astype(np.int64)
+    dims = idx.max(axis=0, initial=0) + 1
+    nrm = patches.normal[receivers]
+    axis = np.abs(nrm).argmax(axis=1)  # the receivers' facing: one of six cube faces
+    face = 2 * axis + (nrm[np.arange(k), axis] < 0)
+    key = ((idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]) * 6 + face
+    order = np.argsort(key, kind="stable")
+    cells, start, count = np.unique(key[order], return_index=True, return_counts=True)
+    lo_c = np.minimum.reduceat(lo_r[order], start, axis=0)
+    hi_c = np.maximum.reduceat(hi_r[order], start, axis=0)
+    nlo = np.minimum.reduceat(nrm[order], start, axis=0)
+    nhi = np.maximum.reduceat(nrm[order], start, axis=0)
+    del lo_r, hi_r, nrm, axis, face
+    n_l = len(lights)
+    pts = lights.loops.reshape(-1, 3)
+    owner = np.repeat(lights.loop_light, lights.loops.shape[1])
+    lo_l = np.full((n_l, 3), np.inf)
+    hi_l = np.full((n_l, 3), -np.inf)
+    np.minimum.at(lo_l, owner, pts)
+    np.maximum.at(hi_l, owner, pts)
+    ny = lights.normal
+    offset = _plane_offsets(lights)
+    n_c = len(cells)
+    out_c, out_l, out_q = [], [], []
+    step = max(1, _BLOCK // max(n_l, 1))
+    for a in range(0, n_c, step):
+        lc, hc = lo_c[a:a + step, None, :], hi_c[a:a + step, None, :]
+        gap = np.maximum(np.maximum(lo_l[None] - hc, lc - hi_l[None]), 0.0)
+        d = np.sqrt((gap * gap).sum(axis=2))
+        h = np.maximum(ny[None] * lc, ny[None] * hc).sum(axis=2) - offset[None]
+        # n_x . (y - x) <= hx by interval arithmetic: n_x within the cell's normal box, y - x
+        # within [lo_L - hi_c, hi_L - lo_c]
+        dlo, dhi = lo_l[None] - hc, hi_l[None] - lc
+        a_lo, a_hi = nlo[a:a + step, None, :], nhi[a:a + step, None, :]
+        hx = np.maximum(np.maximum(a_lo * dlo, a_lo * dhi), np.maximum(a_hi * dlo, a_hi * dhi)).sum(axis=2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = np.where(d > 0, lights.area[None] * np.minimum(h, d) * np.clip(hx, 0.0, d)
+                             / (math.pi * d ** 4), np.inf)
+        h = np.where(hx > 0, h, 0.0)  # no receiver of the cell faces the light
+        q = np.where(h > 0, np.minimum(bound / FAR_BOUND, 1.0), 0.0)
+        ci, li = np.nonzero(q > 0)
+        out_c.append(a + ci)
+        out_l.append(li)
+        out_q.append(q[ci, li])
+    cat = (lambda parts, dt: np.concatenate(parts).astype(dt) if parts else np.zeros(0, dt))
+    return LightLists(order, start, count, cat(out_c, np.int64), cat(out_l, np.int64), cat(out_q, np.float64))
+
+
+def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, rng: np.random.Generator,
+                lists: LightLists | None = None, chunk: int = 1 << 18, cells: tuple[int, int] | None = None):
+    """Pair entries (receiver slot (q,), light (q,), halves present (q,2) bool, 1/keep chance (q,))
+    of the receivers and the lights of their cell's list (``light_lists``) that can exchange
+    light: some corner of the receiver in front of the light's plane and some vertex of its
+    outline above the receiver's plane.  A near light's pairs are present in both halves; a far
+    one's are drawn per half: Binomial(n, q) receivers of the cell's n, uniformly with replacement,
+    each weighted 1/q (each receiver is drawn q times on average: unbiased).  Sorted by receiver.
+    ``cells``: only the receivers of cells c0 <= c < c1 (of ``lists``)."""
+    if lists is None:
+        lists = light_lists(patches, lights, receivers)
+    lo, hi = (0, len(lists.cell)) if cells is None else np.searchsorted(lists.cell, cells)
+    l_cell, l_light, l_q = lists.cell[lo:hi], lists.light[lo:hi], lists.q[lo:hi]
+    v = patches.vertices
+    near = l_q >= 1.0
+    parts_s, parts_l, parts_m, parts_w = [], [], [], []
+    # near lights: every receiver of the cell, both halves
+    nc, nl = l_cell[near], l_light[near]
+    per = lists.count[nc]
+    rows = np.repeat(np.arange(len(nc)), per)
+    within = np.arange(len(rows)) - np.repeat(np.cumsum(per) - per, per)
+    parts_s.append(lists.order[lists.start[nc][rows] + within])
+    parts_l.append(nl[rows])
+    parts_m.append(np.full(len(rows), 3, np.int8))
+    parts_w.append(np.ones(len(rows)))
+    del rows, within
+    # far lights: drawn per half
+    fc, fl, fq = l_cell[~near], l_light[~near], l_q[~near]
+    for h in range(2):
+        drawn = rng.binomial(lists.count[fc], fq)
+        rows = np.repeat(np.arange(len(fc)), drawn)
+        pick = np.floor(rng.random(len(rows)) * lists.count[fc][rows]).astype(np.int64)
+        parts_s.append(lists.order[lists.start[fc][rows] + pick])
+        parts_l.append(fl[rows])
+        parts_m.append(np.full(len(rows), 1 << h, np.int8))
+        parts_w.append(1.0 / fq[rows])
+    slot, light = np.concatenate(parts_s), np.concatenate(parts_l)
+    mask, inv_q = np.concatenate(parts_m), np.concatenate(parts_w)
+    del parts_s, parts_l, parts_m, parts_w
+    # the exact plane tests per entry, in chunks
+    ny = lights.normal
+    offset = _plane_offsets(lights)
+    verts = _light_vertices(lights)  # (L, W, 3)
+    ok = np.zeros(len(slot), bool)
+    for a in range(0, len(slot), chunk):
+        r = receivers[slot[a:a + chunk]]
+        lt = light[a:a + chunk]
+        corners = v[patches.faces[r]]  # (m,3,3)
+        front = (np.einsum("mcj,mj->mc", corners, ny[lt]) > offset[lt][:, None]).any(axis=1)
+        nrm = patches.normal[r]
+        base = (corners[:, 0] * nrm).sum(axis=1)
+        above = (np.einsum("mvj,mj->mv", verts[lt], nrm) > base[:, None]).any(axis=1)
+        ok[a:a + chunk] = front & above
+    keep = np.flatnonzero(ok)
+    srt = keep[np.argsort(slot[keep], kind="stable")]
+    present = np.stack([(mask[srt] & 1) > 0, (mask[srt] & 2) > 0], axis=1)
+    return slot[srt], light[srt], present, inv_q[srt]
+
+
+def _light_vertices(lights: Lights) -> np.ndarray:
+    """(L, W, 3) every outline vertex of each light (its loops one after the other), padded by
+    repeating its first vertex."""
+    n_l = len(lights)
+    per = np.bincount(lights.loop_light, minlength=n_l)
+    v = lights.loops.shape[1]
+    width = int(per.max(initial=1)) * v
+    order = np.argsort(lights.loop_light, kind="stable")
+    slot = np.arange(len(order)) - np.repeat(np.cumsum(per) - per, per)
+    out = np.empty((n_l, width, 3))
+    first = lights.loops[order[np.cumsum(per) - per], 0]
+    out[:] = first[:, None, :]
+    lt = lights.loop_light[order]
+    for j in range(v):
+        out[lt, slot * v + j] = lights.loops[order, j]
+    return out
+
+
+def _plane_offsets(lights: Lights) -> np.ndarray:
+    """(L,) n . y of each light's plane (from the first vertex of its first loop)."""
+    per = np.bincount(lights.loop_light, minlength=len(lights))
+    order = np.argsort(lights.loop_light, kind="stable")
+    first = order[np.cumsum(per) - per]
+    return (lights.loops[first, 0] * lights.normal).sum(axis=1)
 
 
 def pair_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, light: np.ndarray,
-                      rng: np.random.Generator) -> np.ndarray:
+                      rng: np.random.Generator, chunk: int = 1 << 16) -> np.ndarray:
     """(q,2) exact unoccluded form factor from receiver ``rec`` to ``light`` per pair, each half the
     mean over three points of the receiver: a uniform random point and its two cyclic
     permutations of barycentric coordinates.  Each point is uniform on the triangle (unbiased)
     and the three average to the centroid, so the part of F linear over the patch is exact
-    (two independent random points per half left 0.8% noise on Cornell's direct light)."""
-    v = patches.vertices
+    (two independent random points per half left 0.8% noise on Cornell's direct light).
+    ``chunk`` pairs at a time (bounded memory)."""
+    ff = np.zeros((len(rec), 2))
+    u = rng.random((len(rec), 2, 2))
+    for a in range(0, len(rec), chunk):
+        ff[a:a + chunk] = _pair_form_factors(patches, lights, rec[a:a + chunk], light[a:a + chunk], u[a:a + chunk])
+    return ff
+
+
+def _pair_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, light: np.ndarray,
+                       u: np.ndarray | None, chunk: int = 1 << 16) -> np.ndarray:
+    """(q,2) per half the mean of F over the three rotated points of ``u`` (q,2,2); u None: (q,1)
+    F at the centroid (in chunks)."""
+    if u is None:
+        out = np.zeros((len(rec), 1))
+        for a in range(0, len(rec), chunk):
+            out[a:a + chunk, 0] = _centroid_form_factors(patches, lights, rec[a:a + chunk], light[a:a + chunk])
+        return out
+    return _rotated_form_factors(patches, lights, rec, light, u)
+
+
+def _loops_of(lights: Lights, rec: np.ndarray, light: np.ndarray):
+    """(owner (m,), loop (m,)): every loop of each pair's light."""
     n_loops = np.bincount(lights.loop_light, minlength=len(lights))
     loop_start = np.cumsum(n_loops) - n_loops
     per_pair = n_loops[light]
     owner = np.repeat(np.arange(len(rec)), per_pair)
     loop = loop_start[light][owner] + (np.arange(len(owner)) - np.repeat(np.cumsum(per_pair) - per_pair, per_pair))
+    return owner, loop
+
+
+def _centroid_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, light: np.ndarray) -> np.ndarray:
+    owner, loop = _loops_of(lights, rec, light)
+    r = rec[owner]
+    part = polygon_form_factor(patches.centroid[r], patches.normal[r], lights.loops[loop],
+                               lights.normal[lights.loop_light[loop]])
+    return np.maximum(np.bincount(owner, weights=part, minlength=len(rec)), 0.0)
+
+
+def _rotated_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, light: np.ndarray,
+                          u: np.ndarray) -> np.ndarray:
+    v = patches.vertices
+    owner, loop = _loops_of(lights, rec, light)
     r = rec[owner]
     f = patches.faces[r]
     corners = (v[f[:, 0]], v[f[:, 1]], v[f[:, 2]])
     nx = patches.normal[r]
     ny = lights.normal[lights.loop_light[loop]]
     ff = np.zeros((len(rec), 2))
-    u = rng.random((len(rec), 2, 2))
     for h in range(2):
         s = np.sqrt(u[owner, h, 0])
         bary = (1.0 - s, s * (1.0 - u[owner, h, 1]), s * u[owner, h, 1])
@@ -410,32 +600,41 @@ def _visibility(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.n
     return out[0], out[1], out[2], out[3]
 
 
-def _near(patches: Patches, rec: np.ndarray, light: np.ndarray, probe: np.ndarray,
-          flags: list[np.ndarray]) -> list[np.ndarray]:
-    """For each flag (one per probed pair ``probe``), (q,) True for the pairs whose grid cell
-    (PENUMBRA_CELL receiver diameters) or a neighbouring one holds a probed pair of the same
-    light with that flag: penumbrae and shadows are spatially coherent."""
-    size = PENUMBRA_CELL * math.sqrt(2.0 * float(np.median(patches.area[rec])))
-    cell = np.floor((patches.centroid[rec] - patches.bounds[0]) / max(size, 1e-300)).astype(np.int64) + 1
-    dims = cell.max(axis=0) + 2
-    n_light = int(light.max(initial=0)) + 1
+class _ProbeGrid:
+    """Grid cells of PENUMBRA_CELL receiver diameters over the whole scene, coded with a light:
+    what the pilot found is kept as sets of (cell, light) codes, so runs of receivers gathered
+    apart (``gather_analytic``'s chunks) still see their neighbours' probes."""
 
-    def code(c: np.ndarray, lt: np.ndarray) -> np.ndarray:
-        return ((c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]) * n_light + lt
+    STEP = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)])
 
-    mine = code(cell, light)
-    out = []
-    for flag in flags:
-        hot = probe[flag]
-        if len(hot) == 0:
-            out.append(np.zeros(len(rec), bool))
-            continue
-        step = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)])
-        near = (cell[hot][:, None, :] + step[None, :, :]).reshape(-1, 3)
-        keys = np.unique(code(near, np.repeat(light[hot], len(step))))
-        pos = np.minimum(np.searchsorted(keys, mine), len(keys) - 1)
-        out.append(keys[pos] == mine)
-    return out
+    def __init__(self, patches: Patches, receivers: np.ndarray, lights: int):
+        self.patches = patches
+        self.size = max(PENUMBRA_CELL * math.sqrt(2.0 * float(np.median(patches.area[receivers]))), 1e-300)
+        self.dims = np.floor((patches.bounds[1] - patches.bounds[0]) / self.size).astype(np.int64) + 3
+        self.lights = lights
+
+    def cells(self, rec: np.ndarray) -> np.ndarray:
+        c = np.floor((self.patches.centroid[rec] - self.patches.bounds[0]) / self.size).astype(np.int64) + 1
+        return np.clip(c, 1, self.dims - 2)
+
+    def code(self, c: np.ndarray, lt: np.ndarray) -> np.ndarray:
+        return ((c[:, 0] * self.dims[1] + c[:, 1]) * self.dims[2] + c[:, 2]) * self.lights + lt
+
+    def spread(self, codes: np.ndarray) -> np.ndarray:
+        """The sorted codes of the cells next to (or at) ``codes``' cells, same lights."""
+        hc = np.unique(codes)
+        lt, rest = hc % self.lights, hc // self.lights
+        cell = np.stack([rest // (self.dims[1] * self.dims[2]), (rest // self.dims[2]) % self.dims[1],
+                         rest % self.dims[2]], axis=1)
+        near = (cell[:, None, :] + self.STEP[None, :, :]).reshape(-1, 3)
+        return np.unique(self.code(near, np.repeat(lt, len(self.STEP))))
+
+
+def _member(keys: np.ndarray, mine: np.ndarray) -> np.ndarray:
+    if len(keys) == 0:
+        return np.zeros(len(mine), bool)
+    pos = np.minimum(np.searchsorted(keys, mine), len(keys) - 1)
+    return keys[pos] == mine
 
 
 def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, power: np.ndarray,
@@ -468,28 +667,110 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
     """
     if receivers is None:
         receivers = np.flatnonzero(patches.rho.any(axis=1))
-    slot, light = light_pairs(patches, lights, receivers)
-    if len(slot) == 0 or float(power.sum()) <= 0:
+    lists = _lists_for(patches, lights, receivers)
+    if len(lists.cell) == 0 or float(power.sum()) <= 0:
         return gather_direct(patches, tracer, emitters, power, shadow_rays, rng, offset, batch_rays,
                              np.zeros(0, np.int64))
+    k = len(receivers)
+    halves = np.zeros((2, k, 3))
+    # receivers in runs of whole cells (cell order: slabs of the scene) of about CHUNK_PAIRS
+    # expected pair entries each: bounded memory at any size.  Two passes: the pilot on every
+    # run (its findings kept as (cell, light) sets of the whole scene, so a run's edge sees the
+    # next run's probes), then the gather; each run's pairs drawn twice from its own seed
+    n = lists.count[lists.cell].astype(np.float64)
+    per_cell = np.bincount(lists.cell, weights=np.where(lists.q >= 1.0, n, 2.0 * n * lists.q),
+                           minlength=len(lists.count))
+    ends = np.cumsum(per_cell)
+    runs = []
+    c0 = 0
+    while c0 < len(lists.count):
+        c1 = max(int(np.searchsorted(ends, (ends[c0 - 1] if c0 else 0.0) + CHUNK_PAIRS, side="right")), c0 + 1)
+        runs.append((c0, c1))
+        c0 = c1
+    seeds = rng.integers(0, 2**63 - 1, size=len(runs))
+    grid = _ProbeGrid(patches, receivers, len(lights))
+    found: list[list[np.ndarray]] = [[], [], []]
+    rays = 0
+    # per (cell, light) code: the weight E F / q (F at the centroid) and the present halves, to
+    # share the budget over the whole scene at one rate of rays per weight (per run it would
+    # be a small difference of large numbers: pilot and one ray a half take most of it)
+    tallies: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    for (c0, c1), seed in zip(runs, seeds):
+        slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
+                                                  cells=(c0, c1))
+        rec = receivers[slot]
+        f0 = _pair_form_factors(patches, lights, rec, light, None)[:, 0]
+        mine, at = np.unique(grid.code(grid.cells(rec), light), return_inverse=True)
+        w0 = lights.exitance[light].sum(axis=1) * f0 * inv_q
+        tallies.append((mine, np.bincount(at, weights=w0, minlength=len(mine)),
+                        np.bincount(at, weights=present.sum(axis=1), minlength=len(mine))))
+        del mine, at, w0, present, inv_q
+        probe = np.flatnonzero((f0 > 0) & (rng.random(len(slot)) < PILOT_PAIRS))
+        _, _, vis, traced = _visibility(patches, tracer, lights, emitters, rec[probe], light[probe],
+                                        np.full(len(probe), PILOT_RAYS, np.int64), rng, offset, batch_rays)
+        rays += PILOT_RAYS * len(probe)
+        codes = grid.code(grid.cells(rec[probe]), light[probe])
+        for j, flag in enumerate(((vis > 0) & (vis < traced), vis > 0, np.ones(len(probe), bool))):
+            if flag.any():
+                found[j].append(grid.spread(codes[flag]))
+        del slot, light, rec, f0, probe, vis, traced, codes
+    near_sets = [np.unique(np.concatenate(f)) if f else np.zeros(0, np.int64) for f in found]
+    del found
+    codes = np.concatenate([t[0] for t in tallies])
+    uc, at = np.unique(codes, return_inverse=True)
+    w_code = np.bincount(at, weights=np.concatenate([t[1] for t in tallies]), minlength=len(uc))
+    h_code = np.bincount(at, weights=np.concatenate([t[2] for t in tallies]), minlength=len(uc))
+    del tallies, codes, at
+    mixed, lit, known = (_member(keys, uc) for keys in near_sets)
+    dark = known & ~mixed & ~lit
+    marked = ~dark & (mixed | ~known)
+    one_each = float(np.where(dark, DARK_KEEP * h_code, np.where(w_code > 0, h_code, 0.0)).sum())
+    budget = max(shadow_rays * k - rays - one_each, 0.0)
+    rate = budget / float(w_code[marked].sum()) if marked.any() and w_code[marked].sum() > 0 else 0.0
+    for (c0, c1), seed in zip(runs, seeds):
+        slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
+                                                  cells=(c0, c1))
+        if len(slot) == 0:
+            continue
+        rays += _gather_pairs(patches, tracer, lights, emitters, receivers, slot, light, present, inv_q,
+                              rate, rng, offset, batch_rays, halves, grid, near_sets)
+    lights.cache.pop("lists", None)
+    received = 0.5 * (halves[0] + halves[1])
+    keep = np.flatnonzero(received.any(axis=1))
+    got = received[keep]
+    escaped = power.sum(axis=0) - got.sum(axis=0)
+    magnitude = np.abs(got)
+    return DirectTally(got, receivers[keep], escaped, np.zeros(3), np.zeros(patches.n_objects),
+                       np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
+                       (magnitude * patches.rho[receivers[keep]]).sum(axis=0), np.abs(escaped),
+                       0.5 * halves[0][keep], rays)
+
+
+#: expected pair entries gathered at once (``gather_analytic``: about 0.3 KB each at the peak)
+CHUNK_PAIRS = 1 << 20
+
+
+def _gather_pairs(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.ndarray, receivers: np.ndarray,
+                  slot: np.ndarray, light: np.ndarray, present: np.ndarray, inv_q: np.ndarray, rate: float,
+                  rng: np.random.Generator, offset: float, batch_rays: int, halves: np.ndarray,
+                  grid: _ProbeGrid, near_sets: list[np.ndarray]) -> int:
+    """``gather_analytic`` on one run of pair entries: adds each half's received power to
+    ``halves`` (2,k,3) at the receivers' slots; returns the shadow rays traced (the pilot's
+    not included).  ``rate``: the extra rays per unit weight E F / q of a pair near a penumbra.
+    ``near_sets``: the (cell, light) codes next to a probed pair found partly visible, lit, probed."""
     rec = receivers[slot]
-    ff = pair_form_factors(patches, lights, rec, light, rng)
-    weight = lights.exitance[light].sum(axis=1) * ff.mean(axis=1)
-    seen = weight > 0
-    # the pilot: where the penumbrae are, and which lights are dark where
-    probe = np.flatnonzero(seen & (rng.random(len(slot)) < PILOT_PAIRS))
-    pilot = np.full(len(probe), PILOT_RAYS, np.int64)
-    _, _, vis, traced = _visibility(patches, tracer, lights, emitters, rec[probe], light[probe], pilot, rng, offset,
-                                    batch_rays)
-    mixed, lit, known = _near(patches, rec, light, probe, [(vis > 0) & (vis < traced), vis > 0,
-                                                          np.ones(len(probe), bool)])
-    dark = seen & known & ~mixed & ~lit  # probed nearby, and none of its rays got through
-    marked = seen & (mixed | ~known)  # near a penumbra, or nothing known: the budget's share
-    keep = np.where(dark[:, None], rng.random((len(slot), 2)) < DARK_KEEP, seen[:, None])  # (q,2) traced halves
-    budget = max(shadow_rays * len(receivers) - int(pilot.sum()) - int(keep.sum()), 0)
-    extra = np.zeros(len(slot))
-    if marked.any():
-        extra[marked] = budget * weight[marked] / weight[marked].sum()
+    mine = grid.code(grid.cells(rec), light)
+    mixed, lit, known = (_member(keys, mine) for keys in near_sets)
+    del mine
+    dark = known & ~mixed & ~lit  # probed nearby, and none of its rays got through
+    ff = np.zeros((len(slot), 2))
+    lit_rows = np.flatnonzero(~dark)
+    ff[lit_rows] = pair_form_factors(patches, lights, rec[lit_rows], light[lit_rows], rng)
+    weight = lights.exitance[light].sum(axis=1) * ff.mean(axis=1) * inv_q
+    seen = dark | (weight > 0)  # a dark pair passed the plane tests (light_pairs): traced by roulette
+    marked = ~dark & seen & (mixed | ~known)  # near a penumbra, or nothing known: the budget's share
+    keep = present & np.where(dark[:, None], rng.random((len(slot), 2)) < DARK_KEEP, seen[:, None])  # traced halves
+    extra = np.where(marked, rate * weight, 0.0)
     n = np.where(keep, (1 + np.floor(extra / 2.0))[:, None], 0).astype(np.int64)  # rays per pair and half
     counts = n.reshape(-1)  # entry 2q + h: pair q, half h
     num, den, _, _ = _visibility(patches, tracer, lights, emitters, np.repeat(rec, 2), np.repeat(light, 2), counts,
@@ -502,30 +783,37 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
     seen_share = np.where(np.isnan(seen_share), seen_share[:, ::-1], seen_share)
     seen_share = np.where(np.isnan(seen_share), 1.0, seen_share)
     per = lights.area[light][:, None] / np.maximum(n, 1)
-    share = np.where(dark[:, None], np.where(keep, per * num / DARK_KEEP, 0.0), ff * seen_share)
+    share = np.where(dark[:, None], np.where(keep, per * num / DARK_KEEP, 0.0), ff * seen_share * present)
+    share *= inv_q[:, None]  # a far light's pair, drawn with chance q per half (light_pairs)
     area = patches.area[rec]
     colour = lights.exitance[light]
-    k = len(receivers)
-    halves = np.zeros((2, k, 3))
+    k = halves.shape[1]
     for h in range(2):
         contrib = (share[:, h] * area)[:, None] * colour
         for ch in range(3):
-            halves[h, :, ch] = np.bincount(slot, weights=contrib[:, ch], minlength=k)
-    received = 0.5 * (halves[0] + halves[1])
-    keep = np.flatnonzero(received.any(axis=1))
-    got = received[keep]
-    escaped = power.sum(axis=0) - got.sum(axis=0)
-    magnitude = np.abs(got)
-    return DirectTally(got, receivers[keep], escaped, np.zeros(3), np.zeros(patches.n_objects),
-                       np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
-                       (magnitude * patches.rho[receivers[keep]]).sum(axis=0), np.abs(escaped),
-                       0.5 * halves[0][keep], int(counts.sum() + pilot.sum()))
+            halves[h, :, ch] += np.bincount(slot, weights=contrib[:, ch], minlength=k)
+    return int(counts.sum())
 
 
 def analytic_lights(patches: Patches, emitters: np.ndarray, power: np.ndarray, receivers: int) -> Lights | None:
     """The lights for ``gather_analytic``, or None when the sampled gather is to be used (too many
-    outline vertices, or receivers x loops above MAX_PAIRS)."""
+    outline vertices, or more than MAX_PAIRS expected pair entries per receiver from the
+    receivers' light lists, ``light_lists``).  ``receivers``: the receiving patches' count (kept for callers; the
+    receivers are the patches with a reflectance)."""
     lights = light_polygons(patches, emitters, power)
-    if lights is None or receivers * len(lights.loops) > MAX_PAIRS:
+    if lights is None:
+        return None
+    rows = np.flatnonzero(patches.rho.any(axis=1))
+    if len(rows) and _lists_for(patches, lights, rows).expected_pairs() > MAX_PAIRS * len(rows):
         return None
     return lights
+
+
+def _lists_for(patches: Patches, lights: Lights, receivers: np.ndarray) -> LightLists:
+    """``light_lists``, kept on ``lights`` for the same receivers (analytic_lights, then the gather)."""
+    got = lights.cache.get("lists")
+    if got is not None and len(got[0]) == len(receivers) and np.array_equal(got[0], receivers):
+        return got[1]
+    lists = light_lists(patches, lights, receivers)
+    lights.cache["lists"] = (receivers.copy(), lists)
+    return lists

@@ -17,7 +17,7 @@ merged (the Cornell light, 128 patches, is 4 edges; each office lamp, 24 patches
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,6 +45,8 @@ class Lights:
     parallelogram: np.ndarray | None = None
     corner: np.ndarray | None = None  #: (L, 3) m
     edges: np.ndarray | None = None  #: (L, 2, 3) m
+    #: derived data kept between calls (direct.light_lists: the receivers' light lists)
+    cache: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return len(self.normal)

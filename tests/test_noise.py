@@ -258,3 +258,75 @@ def test_a_final_gather_round_moves_reflected_light_but_not_its_total(uniform_fu
     assert np.abs(patches.radiosity - before).max() > 0
     for name, value in s.ledger.as_arrays().items():
         np.testing.assert_array_equal(value, books[name])
+
+
+@pytest.fixture(scope="module")
+def office_lights(tmp_path_factory):
+    """The 2x2 office (lamps of four rooms, doorways), its lights and receivers."""
+    from dcrad.pipeline import resolve_scene
+
+    _, p, _ = prepare(resolve_scene("office:rows=2,cols=2", tmp_path_factory.mktemp("office")))
+    em = np.flatnonzero(p.emission.any(axis=1))
+    lights = light_polygons(p, em, p.emission[em] * p.area[em, None])
+    assert lights is not None
+    return p, lights, np.flatnonzero(p.rho.any(axis=1))
+
+
+def test_light_lists_bound_the_exact_form_factor(office_lights):
+    """Every receiver's exact unoccluded form factor (Lambert) to every light, at its centroid and
+    near its corners, is within its cell's bound: 0 where the light is not listed, at most
+    q FAR_BOUND where the light is far (q < 1); the lists never drop a light a receiver sees."""
+    from dcrad.direct import FAR_BOUND, light_lists
+
+    p, lights, rec = office_lights
+    lists = light_lists(p, lights, rec)
+    cell_of = np.empty(len(rec), np.int64)
+    cell_of[lists.order] = np.repeat(np.arange(len(lists.count)), lists.count)
+    q = np.zeros((len(lists.count), len(lights)))
+    q[lists.cell, lists.light] = lists.q
+    assert (q < 1).any() and (q == 1).any() and (q == 0).any()
+    corners = p.vertices[p.faces[rec]]
+    for w in (None, 0, 1, 2):
+        x = p.centroid[rec] if w is None else 0.999 * corners[:, w] + 0.001 * p.centroid[rec]
+        for light in range(len(lights)):
+            loops = np.flatnonzero(lights.loop_light == light)
+            f = sum(polygon_form_factor(x, p.normal[rec], np.repeat(lights.loops[j][None], len(rec), axis=0),
+                                        np.repeat(lights.normal[light][None], len(rec), axis=0)) for j in loops)
+            qi = q[cell_of, light]
+            assert np.all(f[qi == 0] <= 1e-12)
+            assert np.all(f[qi < 1] <= qi[qi < 1] * FAR_BOUND * (1 + 1e-9))
+
+
+def test_far_pairs_are_drawn_without_bias(office_lights, monkeypatch):
+    """light_pairs draws a far light's pairs per half with chance q, weighted 1/q: over many
+    draws each pair's weight averages 1, and no pair outside the full set (every listed light
+    near) is drawn."""
+    from dcrad import direct
+
+    p, lights, rec = office_lights
+    monkeypatch.setattr(direct, "FAR_BOUND", 1e-300)
+    s, lt, present, w = direct.light_pairs(p, lights, rec, np.random.default_rng(0))
+    assert present.all() and np.all(w == 1)
+    n_l = len(lights)
+    full = s * n_l + lt
+    monkeypatch.undo()
+    lists = direct.light_lists(p, lights, rec)
+    draws = 60
+    total = np.zeros((len(full), 2))
+    for seed in range(draws):
+        s, lt, present, w = direct.light_pairs(p, lights, rec, np.random.default_rng(seed), lists)
+        code = s * n_l + lt
+        at = np.searchsorted(full, code)
+        assert np.all(full[np.minimum(at, len(full) - 1)] == code)
+        for h in range(2):
+            total[:, h] += np.bincount(at, weights=w * present[:, h], minlength=len(full))
+    mean = total / draws
+    cell_of = np.empty(len(rec), np.int64)
+    cell_of[lists.order] = np.repeat(np.arange(len(lists.count)), lists.count)
+    q = np.zeros((len(lists.count), n_l))
+    q[lists.cell, lists.light] = lists.q
+    far = q[cell_of[full // n_l], full % n_l] < 1.0
+    assert far.sum() > 100
+    # a far pair's weight per draw: 1/q with chance q (binomial picks, with replacement)
+    assert abs(float(mean[far].mean()) - 1.0) < 0.02
+    assert np.all(mean[~far] == 1.0)
