@@ -39,7 +39,11 @@ found penumbrae, and lights the pilot found hidden (the many lights of other
 rooms) are traced by Russian roulette.  Cornell at 32 shadow rays per patch: 0.49%
 noise on the direct light, against 1.5% for ``gather_direct`` (next-event
 estimation with receiver-local light choice, the fallback) at 44; the office 3x3:
-1.75% at 32, where next-event estimation lost to shooting.
+1.75% at 32, where next-event estimation lost to shooting.  At scale (the office of 8x8
+rooms: 128 lamps, 201k receivers) no receivers x lights table is formed: grid cells of
+receivers keep lists of the lights whose form factor from the cell can be non-negligible
+(``light_lists``, from a bound), farther lights' pairs are drawn by Russian roulette per
+half, and the pairs are gathered in runs of CHUNK_PAIRS (bounded memory).
 
 Only for single-subscene runs: a subscene sees only its own emitters and
 patches, so a divided run shoots its direct light as before.
@@ -301,7 +305,7 @@ FAR_BOUND = 2e-3
 #: receiver cells of the light lists: this share of the scene's bounding-box diagonal
 LIST_CELL = 1.0 / 64.0
 #: cell-light bounds evaluated at once (bounded memory)
-_BLOCK = 1 << 21
+_BLOCK = 1 << 17
 
 
 @dataclass
@@ -331,27 +335,37 @@ def light_lists(patches: Patches, lights: Lights, receivers: np.ndarray) -> Ligh
     receiver's cos <= hx / d), r >= d.  Cells are grid cells split by the receivers' facing
     (six cube faces), so the normals of a cell are close.  Never forms receivers x lights."""
     v = patches.vertices
-    k = len(receivers)
-    lo_r = np.empty((k, 3))
-    hi_r = np.empty((k, 3))
-    for a in range(0, k, 1 << 18):  # receivers' corner boxes, in chunks
-        c = v[patches.faces[receivers[a:a + (1 << 18)]]]
-        lo_r[a:a + len(c)], hi_r[a:a + len(c)] = c.min(axis=1), c.max(axis=1)
     box = patches.bounds
     size = max(float(np.linalg.norm(box[1] - box[0])) * LIST_CELL, 1e-300)
-    idx = np.floor((0.5 * (lo_r + hi_r) - box[0]) / size).astype(np.int64)
-    dims = idx.max(axis=0, initial=0) + 1
-    nrm = patches.normal[receivers]
-    axis = np.abs(nrm).argmax(axis=1)  # the receivers' facing: one of six cube faces
-    face = 2 * axis + (nrm[np.arange(k), axis] < 0)
-    key = ((idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]) * 6 + face
+    dims = np.floor((box[1] - box[0]) / size).astype(np.int64) + 1
+    step_r = 1 << 16
+    key = np.empty(len(receivers), np.int64)
+    for a in range(0, len(receivers), step_r):  # cell of the centroid, split by facing (six cube faces)
+        rows = receivers[a:a + step_r]
+        idx = np.clip(np.floor((patches.centroid[rows] - box[0]) / size).astype(np.int64), 0, dims - 1)
+        nrm = patches.normal[rows]
+        axis = np.abs(nrm).argmax(axis=1)
+        face = 2 * axis + (nrm[np.arange(len(rows)), axis] < 0)
+        key[a:a + step_r] = ((idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]) * 6 + face
     order = np.argsort(key, kind="stable")
     cells, start, count = np.unique(key[order], return_index=True, return_counts=True)
-    lo_c = np.minimum.reduceat(lo_r[order], start, axis=0)
-    hi_c = np.maximum.reduceat(hi_r[order], start, axis=0)
-    nlo = np.minimum.reduceat(nrm[order], start, axis=0)
-    nhi = np.maximum.reduceat(nrm[order], start, axis=0)
-    del lo_r, hi_r, nrm, axis, face
+    del key
+    cell_of = np.repeat(np.arange(len(cells)), count)  # cell of each sorted receiver
+    lo_c = np.full((len(cells), 3), np.inf)
+    hi_c = np.full((len(cells), 3), -np.inf)
+    nlo = np.full((len(cells), 3), np.inf)
+    nhi = np.full((len(cells), 3), -np.inf)
+    for a in range(0, len(order), step_r):  # the cells' boxes of corners and of normals, in chunks
+        rows = receivers[order[a:a + step_r]]
+        at = cell_of[a:a + step_r]
+        first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
+        c = v[patches.faces[rows]]
+        n = patches.normal[rows]
+        for out, values, op in ((lo_c, c.min(axis=1), np.minimum), (hi_c, c.max(axis=1), np.maximum),
+                                (nlo, n, np.minimum), (nhi, n, np.maximum)):
+            cell = at[first]
+            out[cell] = op(out[cell], op.reduceat(values, first, axis=0))
+    del cell_of
     n_l = len(lights)
     pts = lights.loops.reshape(-1, 3)
     owner = np.repeat(lights.loop_light, lights.loops.shape[1])
@@ -473,7 +487,7 @@ def _plane_offsets(lights: Lights) -> np.ndarray:
 
 
 def pair_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, light: np.ndarray,
-                      rng: np.random.Generator, chunk: int = 1 << 16) -> np.ndarray:
+                      rng: np.random.Generator, chunk: int = 1 << 14) -> np.ndarray:
     """(q,2) exact unoccluded form factor from receiver ``rec`` to ``light`` per pair, each half the
     mean over three points of the receiver: a uniform random point and its two cyclic
     permutations of barycentric coordinates.  Each point is uniform on the triangle (unbiased)
@@ -488,7 +502,7 @@ def pair_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, light: 
 
 
 def _pair_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, light: np.ndarray,
-                       u: np.ndarray | None, chunk: int = 1 << 16) -> np.ndarray:
+                       u: np.ndarray | None, chunk: int = 1 << 14) -> np.ndarray:
     """(q,2) per half the mean of F over the three rotated points of ``u`` (q,2,2); u None: (q,1)
     F at the centroid (in chunks)."""
     if u is None:
@@ -707,7 +721,8 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
         del mine, at, w0, present, inv_q
         probe = np.flatnonzero((f0 > 0) & (rng.random(len(slot)) < PILOT_PAIRS))
         _, _, vis, traced = _visibility(patches, tracer, lights, emitters, rec[probe], light[probe],
-                                        np.full(len(probe), PILOT_RAYS, np.int64), rng, offset, batch_rays)
+                                        np.full(len(probe), PILOT_RAYS, np.int64), rng, offset,
+                                        min(batch_rays, VIS_BATCH))
         rays += PILOT_RAYS * len(probe)
         codes = grid.code(grid.cells(rec[probe]), light[probe])
         for j, flag in enumerate(((vis > 0) & (vis < traced), vis > 0, np.ones(len(probe), bool))):
@@ -746,8 +761,11 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
                        0.5 * halves[0][keep], rays)
 
 
-#: expected pair entries gathered at once (``gather_analytic``: about 0.3 KB each at the peak)
-CHUNK_PAIRS = 1 << 20
+#: shadow rays traced at once by the analytic gather (about 0.5 KB a ray in ``_visibility``)
+VIS_BATCH = 1 << 16
+#: expected pair entries gathered at once (``gather_analytic``: about 0.3 KB each at the peak;
+#: 2^20 of them took 650 MB on the 20x20 office)
+CHUNK_PAIRS = 1 << 18
 
 
 def _gather_pairs(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.ndarray, receivers: np.ndarray,
@@ -774,7 +792,7 @@ def _gather_pairs(patches: Patches, tracer: Tracer, lights: Lights, emitters: np
     n = np.where(keep, (1 + np.floor(extra / 2.0))[:, None], 0).astype(np.int64)  # rays per pair and half
     counts = n.reshape(-1)  # entry 2q + h: pair q, half h
     num, den, _, _ = _visibility(patches, tracer, lights, emitters, np.repeat(rec, 2), np.repeat(light, 2), counts,
-                                 rng, offset, batch_rays)
+                                 rng, offset, min(batch_rays, VIS_BATCH))
     num, den = num.reshape(-1, 2), den.reshape(-1, 2)
     # each half's visible form factor: the exact F times the visible share sum G V / sum G of its
     # rays (a half with no ray above both horizons reads the other half's share, or 1); a dark

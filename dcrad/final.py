@@ -118,8 +118,6 @@ class FinalGather:
         p, rec = self.patches, self.rec
         half = max(rays // 2, 1)
         refl = self.radiosity - p.emission
-        read_a = refl + 0.5 * self.diff
-        read_b = refl - 0.5 * self.diff
         per = max(self.batch_rays // (2 * half), 1)
         for lo in range(0, len(rec), per):
             rows = rec[lo:lo + per]
@@ -127,9 +125,11 @@ class FinalGather:
             origins, dirs, owner, in_a = gather_rays(p, rows, half, rng)
             hit = read_hits(self.tracer, p, origins, dirs)
             got = hit >= 0
-            for which, read, q in ((True, read_a, self.sum_a), (False, read_b, self.sum_b)):
+            # half A reads B + D/2, half B reads B - D/2 (per hit: no (n,3) copies of either)
+            for which, sign, q in ((True, 0.5, self.sum_a), (False, -0.5, self.sum_b)):
                 sel = np.flatnonzero(got & (in_a == which))
-                values = read[hit[sel]]
+                at = hit[sel]
+                values = refl[at] + sign * self.diff[at]
                 for c in range(3):
                     q[lo:lo + k, c] += np.bincount(owner[sel], weights=values[:, c], minlength=k)
         self.per_half += half
@@ -138,19 +138,29 @@ class FinalGather:
         q_a = self.sum_a * area / self.per_half
         q_b = self.sum_b * area / self.per_half
         q = 0.5 * (q_a + q_b)
-        # the shooting's indirect power per receiver: what it received, less its direct light
-        received = np.where(rho > 0, refl[rec] * area / np.where(rho > 0, rho, 1.0), 0.0)
-        ind = received - self.direct[rec]
-        # one scale per channel keeps the reflected light kept, sum rho P (= sum A (B - E)), the shooting's
+        refl_rec = refl[rec]
+        del refl
+        received = np.where(rho > 0, refl_rec * area / np.where(rho > 0, rho, 1.0), 0.0)
+        del refl_rec
+        direct = self.direct[rec]
+        ind = received - direct
+        del received
         kept, got_q = colsum(rho * ind), colsum(rho * q)
         scale = np.where(got_q != 0, kept / np.where(got_q != 0, got_q, 1.0), 1.0)
         new_ind = scale * q
+        del q
+        mismatch = colsum(new_ind - ind)
+        del ind
         b = self.radiosity.copy()
-        b[rec] = p.emission[rec] + rho * (self.direct[rec] + new_ind) / area
+        b[rec] = p.emission[rec] + rho * (direct + new_ind) / area
+        del new_ind
         d = self.diff.copy()
-        dir_diff = 2.0 * (2.0 * self.direct_a[rec] - self.direct[rec])  # P_A - P_B of the direct light
-        d[rec] = rho * (dir_diff + scale * (q_a - q_b)) / area
-        return b, d, int(len(rec)) * 2 * half, colsum(new_ind - ind)
+        dir_diff = 2.0 * (2.0 * self.direct_a[rec] - direct)  # P_A - P_B of the direct light
+        del direct
+        q_a -= q_b
+        del q_b
+        d[rec] = rho * (dir_diff + scale * q_a) / area
+        return b, d, int(len(rec)) * 2 * half, mismatch
 
 
 def final_gather(patches: Patches, tracer: Tracer, rays: int, rng: np.random.Generator, diff: np.ndarray,
