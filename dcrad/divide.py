@@ -727,10 +727,21 @@ def estimate_patches(triangles: np.ndarray, patch_size: float) -> int:
     return int(np.sum(4.0 ** np.minimum(levels, 20)) * 2 / 3)
 
 
-def auto_workers(n_patches: int, cpus: int) -> tuple[int, str]:
-    """Local worker processes for `dcrad solve` without --workers, and the report's line on it."""
+def auto_workers(n_patches: int, cpus: int, gathers: bool = False) -> tuple[int, str]:
+    """Local worker processes for `dcrad solve` without --workers, and the report's line on it.
+
+    gathers: the run is in accuracy mode with the direct light gathered, so one process can
+    take the final plan (exact direct gather, shot reflected light, final gather: accuracy.py),
+    which divided runs do not have: on the 8x8 office at 2% that is 42M rays and 33 CPU s in
+    one process against 307M rays and ~60 s wall on two workers (bench/RESULTS.md, issue 14).
+    """
     if cpus < 2:
         return 0, "solved in this process (--workers 0 by default): one CPU, local workers would only compete"
+    if gathers:
+        return 0, (f"solved in this process (--workers 0 by default): about {n_patches} patches; accuracy mode "
+                   f"gathers the light (direct from exact form factors, then a final gather), which divided runs "
+                   f"do not yet do, and it needs several times fewer rays than dividing saves "
+                   f"(--workers 2 divides anyway)")
     if n_patches < AUTO_DIVIDE_PATCHES:
         return 0, (f"solved in this process (--workers 0 by default): about {n_patches} patches, below the "
                    f"{AUTO_DIVIDE_PATCHES} at which two local workers pay for their start-up "
