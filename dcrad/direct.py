@@ -643,6 +643,46 @@ class _ProbeGrid:
         near = (cell[:, None, :] + self.STEP[None, :, :]).reshape(-1, 3)
         return np.unique(self.code(near, np.repeat(lt, len(self.STEP))))
 
+    # the findings: a bitmap per flag over every (cell, light) code when that is small
+    # (DENSE_CODES), dilated by one cell at the end; else sorted sets of spread codes
+    def start(self, flags: int) -> None:
+        self.dense = int(np.prod(self.dims)) * self.lights <= DENSE_CODES
+        size = int(np.prod(self.dims)) * self.lights if self.dense else 0
+        self.maps = [np.zeros(size, bool) for _ in range(flags)]
+        self.parts: list[list[np.ndarray]] = [[] for _ in range(flags)]
+
+    def mark(self, flag: int, codes: np.ndarray) -> None:
+        if self.dense:
+            self.maps[flag][codes] = True
+        elif len(codes):
+            self.parts[flag].append(self.spread(codes))
+
+    def finish(self) -> None:
+        if self.dense:
+            shape = (int(self.dims[0]), int(self.dims[1]), int(self.dims[2]), self.lights)
+            for m in self.maps:
+                b = m.reshape(shape)
+                for axis in range(3):  # the 3x3x3 neighbourhood: one cell each way per axis
+                    src = b.copy()
+                    lo = [slice(None)] * 4
+                    hi = [slice(None)] * 4
+                    lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+                    b[tuple(lo)] |= src[tuple(hi)]
+                    b[tuple(hi)] |= src[tuple(lo)]
+        else:
+            self.sets = [np.unique(np.concatenate(p)) if p else np.zeros(0, np.int64) for p in self.parts]
+            self.parts = []
+
+    def near(self, flag: int, codes: np.ndarray) -> np.ndarray:
+        """(m,) True for the codes next to a probed pair with that flag."""
+        if self.dense:
+            return self.maps[flag][codes]
+        return _member(self.sets[flag], codes)
+
+
+#: (cell, light) codes up to which the pilot's findings are bitmaps (bytes each, per flag)
+DENSE_CODES = 1 << 27
+
 
 def _member(keys: np.ndarray, mine: np.ndarray) -> np.ndarray:
     if len(keys) == 0:
@@ -703,7 +743,7 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
         c0 = c1
     seeds = rng.integers(0, 2**63 - 1, size=len(runs))
     grid = _ProbeGrid(patches, receivers, len(lights))
-    found: list[list[np.ndarray]] = [[], [], []]
+    grid.start(3)
     rays = 0
     # per (cell, light) code: the weight E F / q (F at the centroid) and the present halves, to
     # share the budget over the whole scene at one rate of rays per weight (per run it would
@@ -727,16 +767,15 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
         codes = grid.code(grid.cells(rec[probe]), light[probe])
         for j, flag in enumerate(((vis > 0) & (vis < traced), vis > 0, np.ones(len(probe), bool))):
             if flag.any():
-                found[j].append(grid.spread(codes[flag]))
+                grid.mark(j, codes[flag])
         del slot, light, rec, f0, probe, vis, traced, codes
-    near_sets = [np.unique(np.concatenate(f)) if f else np.zeros(0, np.int64) for f in found]
-    del found
+    grid.finish()
     codes = np.concatenate([t[0] for t in tallies])
     uc, at = np.unique(codes, return_inverse=True)
     w_code = np.bincount(at, weights=np.concatenate([t[1] for t in tallies]), minlength=len(uc))
     h_code = np.bincount(at, weights=np.concatenate([t[2] for t in tallies]), minlength=len(uc))
     del tallies, codes, at
-    mixed, lit, known = (_member(keys, uc) for keys in near_sets)
+    mixed, lit, known = (grid.near(j, uc) for j in range(3))
     dark = known & ~mixed & ~lit
     marked = ~dark & (mixed | ~known)
     one_each = float(np.where(dark, DARK_KEEP * h_code, np.where(w_code > 0, h_code, 0.0)).sum())
@@ -748,7 +787,7 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
         if len(slot) == 0:
             continue
         rays += _gather_pairs(patches, tracer, lights, emitters, receivers, slot, light, present, inv_q,
-                              rate, rng, offset, batch_rays, halves, grid, near_sets)
+                              rate, rng, offset, batch_rays, halves, grid)
     lights.cache.pop("lists", None)
     received = 0.5 * (halves[0] + halves[1])
     keep = np.flatnonzero(received.any(axis=1))
@@ -771,14 +810,14 @@ CHUNK_PAIRS = 1 << 18
 def _gather_pairs(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.ndarray, receivers: np.ndarray,
                   slot: np.ndarray, light: np.ndarray, present: np.ndarray, inv_q: np.ndarray, rate: float,
                   rng: np.random.Generator, offset: float, batch_rays: int, halves: np.ndarray,
-                  grid: _ProbeGrid, near_sets: list[np.ndarray]) -> int:
+                  grid: _ProbeGrid) -> int:
     """``gather_analytic`` on one run of pair entries: adds each half's received power to
     ``halves`` (2,k,3) at the receivers' slots; returns the shadow rays traced (the pilot's
     not included).  ``rate``: the extra rays per unit weight E F / q of a pair near a penumbra.
-    ``near_sets``: the (cell, light) codes next to a probed pair found partly visible, lit, probed."""
+    ``grid``: the pilot's findings (pairs next to a probed one found partly visible, lit, probed)."""
     rec = receivers[slot]
     mine = grid.code(grid.cells(rec), light)
-    mixed, lit, known = (_member(keys, mine) for keys in near_sets)
+    mixed, lit, known = (grid.near(j, mine) for j in range(3))
     del mine
     dark = known & ~mixed & ~lit  # probed nearby, and none of its rays got through
     ff = np.zeros((len(slot), 2))
