@@ -69,7 +69,8 @@ def reference(patches, tracer, rays_per_power: float, cache: Path | None, accura
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="cornell,office")
+    ap.add_argument("--scenes", default="cornell,office",
+                    help="comma-separated, or ;-separated when a scene has parameters ('office:rows=8,cols=8;cornell')")
     ap.add_argument("--accuracies", default="0.1,0.05,0.03,0.02")
     ap.add_argument("--ref-rays-per-power", type=float, default=2e7)
     ap.add_argument("--ref-accuracy", type=float, default=0.0, help="reference from an accuracy run at this target "
@@ -88,7 +89,7 @@ def main() -> None:
           "estimate refl | measured refl | measured norm | est/meas | refl x sqrt(Mrays) | cpu s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
-        for name in args.scenes.split(","):
+        for name in args.scenes.split(";" if ";" in args.scenes else ","):
             path = resolve_scene(name, Path(tmp) / name)
             _, patches, _ = prepare(path)
             tracer = Tracer(patches.triangles)
