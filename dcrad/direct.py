@@ -394,11 +394,12 @@ def light_lists(patches: Patches, lights: Lights, receivers: np.ndarray) -> Ligh
         h = np.where(hx > 0, h, 0.0)  # no receiver of the cell faces the light
         q = np.where(h > 0, np.minimum(bound / FAR_BOUND, 1.0), 0.0)
         ci, li = np.nonzero(q > 0)
-        out_c.append(a + ci)
-        out_l.append(li)
-        out_q.append(q[ci, li])
-    cat = (lambda parts, dt: np.concatenate(parts).astype(dt) if parts else np.zeros(0, dt))
-    return LightLists(order, start, count, cat(out_c, np.int64), cat(out_l, np.int64), cat(out_q, np.float64))
+        out_c.append((a + ci).astype(np.int32))
+        out_l.append(li.astype(np.int32))
+        out_q.append(q[ci, li].astype(np.float32))
+    cat = (lambda parts, dt: np.concatenate(parts).astype(dt, copy=False) if parts else np.zeros(0, dt))
+    # compact: on the 20x20 office most of the 800 lamps are far lights of most cells (q tiny, > 0)
+    return LightLists(order, start, count, cat(out_c, np.int32), cat(out_l, np.int32), cat(out_q, np.float32))
 
 
 def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, rng: np.random.Generator,
@@ -430,13 +431,13 @@ def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, rng: np
     # far lights: drawn per half
     fc, fl, fq = l_cell[~near], l_light[~near], l_q[~near]
     for h in range(2):
-        drawn = rng.binomial(lists.count[fc], fq)
+        drawn = rng.binomial(lists.count[fc], fq.astype(np.float64))
         rows = np.repeat(np.arange(len(fc)), drawn)
         pick = np.floor(rng.random(len(rows)) * lists.count[fc][rows]).astype(np.int64)
         parts_s.append(lists.order[lists.start[fc][rows] + pick])
         parts_l.append(fl[rows])
         parts_m.append(np.full(len(rows), 1 << h, np.int8))
-        parts_w.append(1.0 / fq[rows])
+        parts_w.append(1.0 / fq[rows].astype(np.float64))  # 1/q of the very q drawn with
     slot, light = np.concatenate(parts_s), np.concatenate(parts_l)
     mask, inv_q = np.concatenate(parts_m), np.concatenate(parts_w)
     del parts_s, parts_l, parts_m, parts_w

@@ -294,7 +294,7 @@ def test_light_lists_bound_the_exact_form_factor(office_lights):
                                         np.repeat(lights.normal[light][None], len(rec), axis=0)) for j in loops)
             qi = q[cell_of, light]
             assert np.all(f[qi == 0] <= 1e-12)
-            assert np.all(f[qi < 1] <= qi[qi < 1] * FAR_BOUND * (1 + 1e-9))
+            assert np.all(f[qi < 1] <= qi[qi < 1] * FAR_BOUND * (1 + 1e-6))  # q is stored float32
 
 
 def test_far_pairs_are_drawn_without_bias(office_lights, monkeypatch):
