@@ -145,6 +145,7 @@ def cmd_solve(args) -> int:
 def _auto_workers(args) -> tuple[int, str]:
     """--workers by default: from the scene's patch count (estimated before meshing) and the CPUs."""
     from .accuracy import by_accuracy
+    from .direct import MAX_ANALYTIC_RECEIVERS
     from .divide import auto_workers, estimate_patches
     from .pipeline import default_patch_size, resolve_scene
     from .scene import load_scene
@@ -157,8 +158,9 @@ def _auto_workers(args) -> tuple[int, str]:
     size = args.patch_size if args.patch_size and args.patch_size > 0 else default_patch_size(scene)
     tri = scene.vertices[scene.faces[scene.valid]]
     config = _config(args)
-    gathers = by_accuracy(config) and config.direct
-    return auto_workers(estimate_patches(tri, size), os.cpu_count() or 1, gathers)
+    n = estimate_patches(tri, size)
+    gathers = by_accuracy(config) and config.direct and n <= MAX_ANALYTIC_RECEIVERS
+    return auto_workers(n, os.cpu_count() or 1, gathers)
 
 
 def _note_choice(out: Path, choice: str | None) -> None:

@@ -64,7 +64,8 @@ from .shoot import Tally
 
 __all__ = ["DirectTally", "gather_direct", "shadow_rays_for", "noise_against_shooting", "landing_rays",
            "rescale_to_landed", "merge", "PILOT_SHARE", "GATHER_MARGIN", "gather_analytic", "light_pairs",
-           "pair_form_factors", "MAX_PAIRS", "analytic_lights", "light_lists", "LightLists", "FAR_BOUND"]
+           "pair_form_factors", "MAX_PAIRS", "MAX_ANALYTIC_RECEIVERS", "analytic_lights", "light_lists",
+           "LightLists", "FAR_BOUND"]
 
 #: share of the receivers (at random) gathered first to decide whether gathering beats shooting
 PILOT_SHARE = 0.125
@@ -296,6 +297,11 @@ def merge(a: DirectTally, b: DirectTally, patches: Patches) -> DirectTally:
 #: expected (receiver, light) pair entries per receiver above which the analytic gather is not
 #: used (the sampled one is): CPU time, about 10 us a pair (memory is bounded: CHUNK_PAIRS)
 MAX_PAIRS = 64
+#: receivers above which the analytic gather is not used (measured, one process, bench/RESULTS.md
+#: issue 13): the 8x8 office (201k patches) at 2% went 304M -> 49M rays and 92 -> 33 CPU s with it;
+#: the 20x20 office at 0.4 m (1.27M) at 5% halved its rays but took 1.3-1.5x the CPU and peaked
+#: at 1.55 GB (light lists, tallies and bitmaps: +532 MB), over the 1.5 GB the scale issue allows
+MAX_ANALYTIC_RECEIVERS = 600_000
 #: a light whose form factor from every point of a receiver's cell is bounded below this is a
 #: far light of that cell: its pairs there are kept by Russian roulette, with probability
 #: bound / FAR_BOUND per half, weighted by the inverse (unbiased; the halves draw apart, so the
@@ -855,9 +861,11 @@ def _gather_pairs(patches: Patches, tracer: Tracer, lights: Lights, emitters: np
 
 def analytic_lights(patches: Patches, emitters: np.ndarray, power: np.ndarray, receivers: int) -> Lights | None:
     """The lights for ``gather_analytic``, or None when the sampled gather is to be used (too many
-    outline vertices, or more than MAX_PAIRS expected pair entries per receiver from the
-    receivers' light lists, ``light_lists``).  ``receivers``: the receiving patches' count (kept for callers; the
-    receivers are the patches with a reflectance)."""
+    outline vertices, more than MAX_ANALYTIC_RECEIVERS receivers, or more than MAX_PAIRS expected
+    pair entries per receiver from the receivers' light lists, ``light_lists``).  ``receivers``:
+    the receiving patches' count (the receivers are the patches with a reflectance)."""
+    if receivers > MAX_ANALYTIC_RECEIVERS:
+        return None
     lights = light_polygons(patches, emitters, power)
     if lights is None:
         return None

@@ -56,6 +56,7 @@ from .arrays import colsum, put_rows, rowsum, take_rows
 from .config import SolverConfig
 from .direct import (
     GATHER_MARGIN,
+    MAX_ANALYTIC_RECEIVERS,
     PILOT_SHARE,
     analytic_lights,
     gather_analytic,
@@ -396,7 +397,11 @@ class Solver:
         amounts = p.unshot[emitters].copy()
         power = amounts * p.area[emitters, None]
         shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
-        lights = analytic_lights(p, emitters, power, len(np.flatnonzero(p.rho.any(axis=1))))
+        n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
+        lights = analytic_lights(p, emitters, power, n_receivers)
+        if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
+            self.choices.append(f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
+                                f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
         plan = final_plan(cfg, len(p)) if lights is not None else None
         if plan is not None:
             shadow = plan.shadow_rays
