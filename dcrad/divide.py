@@ -217,9 +217,7 @@ class Subscene(Solver):
         else:
             # at most batch_rays // floor patches fit in a batch, and at most K + twins are ranked
             k = max(1, min(cfg.max_shooters + n_twins, cfg.batch_rays // floor_p))
-            rows, pr = self.pool.candidates(k, self._negligible)
-            if len(rows) > k:  # the pool's priorities are rank's: its top k is rank's top k
-                rows = rows[np.sort(np.argpartition(-pr, k - 1)[:k])]
+            rows = self.candidates(k)
             amounts = take_rows(p.unshot, rows)
         p_power = amounts * take_rows(p.area, rows)[:, None]
         power = np.concatenate([p_power, t_power]) if n_twins else p_power

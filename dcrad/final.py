@@ -34,7 +34,7 @@ import numpy as np
 from .arrays import colsum
 from .patches import Patches
 from .rays import MISS, Tracer
-from .sampling import cosine_hemisphere_columns, kronecker_alpha, onb
+from .sampling import cosine_hemisphere_columns, lattice, onb, triangle_points
 from .shoot import ray_offset
 
 #: the position lattice runs through its points in this order (index * STRIDE mod m): a prime,
@@ -70,22 +70,16 @@ def gather_rays(patches: Patches, rows: np.ndarray, half: int, rng: np.random.Ge
     k = len(rows)
     sets = 2 * k
     index = np.tile(np.arange(half), sets)
-    alpha = kronecker_alpha(2)
     shift = rng.random((sets, 4))
-    u_dir = (index + 0.5)[:, None] * alpha[None, :] + np.repeat(shift[:, :2], half, axis=0)
-    u_pos = ((index * STRIDE) % half + 0.5)[:, None] * alpha[None, :] + np.repeat(shift[:, 2:], half, axis=0)
-    u_dir -= np.floor(u_dir)
-    u_pos -= np.floor(u_pos)
+    u_dir = lattice(index, np.repeat(shift[:, :2], half, axis=0), 2)
+    u_pos = lattice((index * STRIDE) % half, np.repeat(shift[:, 2:], half, axis=0), 2)
     owner = np.repeat(np.arange(k), 2 * half)
     in_a = np.tile(np.repeat([True, False], half), k)
     r = rows[owner]
     f = patches.faces[r]
     v = patches.vertices
     n = patches.normal[r]
-    sq = np.sqrt(u_pos[:, 0])
-    b1, b2 = sq * (1.0 - u_pos[:, 1]), sq * u_pos[:, 1]
-    v0 = v[f[:, 0]]
-    origins = v0 + b1[:, None] * (v[f[:, 1]] - v0) + b2[:, None] * (v[f[:, 2]] - v0) + ray_offset(patches) * n
+    origins = triangle_points(v[f[:, 0]], v[f[:, 1]], v[f[:, 2]], u_pos) + ray_offset(patches) * n
     t, b = onb(n)
     x, y, z = cosine_hemisphere_columns(u_dir[:, 0], u_dir[:, 1])
     dirs = x[:, None] * t + y[:, None] * b + z[:, None] * n

@@ -259,10 +259,7 @@ class Solver:
             idx, counts = self.rank(power, floor, ray_factor=st.ray_factor)
             power, amounts = power[idx], amounts[idx]
         else:
-            k = self.config.max_shooters
-            rows, pr = self.pool.candidates(k, self._negligible)
-            if len(rows) > k:  # the pool's priorities are rank's: its top K is rank's top K
-                rows = rows[np.sort(np.argpartition(-pr, k - 1)[:k])]
+            rows = self.candidates(self.config.max_shooters)
             amounts = p.unshot[rows]
             power = amounts * p.area[rows, None]
             sel, counts = self.rank(power, floor, ray_factor=st.ray_factor)
@@ -270,6 +267,14 @@ class Solver:
         # shoot neighbours after each other: coherent rays for Embree (shooters.spatial_order)
         order = spatial_order(p, idx)
         return idx[order], counts[order], power[order], amounts[order]
+
+    def candidates(self, k: int) -> np.ndarray:
+        """Rows of the shooter pool's top ``k`` (shooters.py; the pool's priorities are rank's,
+        so its top k is rank's top k), in the pool's order."""
+        rows, pr = self.pool.candidates(k, self._negligible)
+        if len(rows) > k:
+            rows = rows[np.sort(np.argpartition(-pr, k - 1)[:k])]
+        return rows
 
     # -- the ledger's unshot sums, kept incrementally -------------------------------
     def book_unshot(self, rows: np.ndarray, before: np.ndarray, after: np.ndarray | None = None,
