@@ -51,10 +51,12 @@ from dcrad.pipeline import _is_floor_plan, divided_books, finish_run, prepare, s
 from dcrad.rays import Tracer
 from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
+from dcrad.share import run_shared, shared_books, shares_possible
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import estimate_to_pb, ledger_to_pb
 
 from .remote import NoWorkers, RemoteSubscene, WorkerPool
+from .shared import Cancelled, RemoteShares
 from .store import CheckpointWriter, JobRecord, JobStore, Resume, StoredPreview
 
 log = logging.getLogger("dcrad.coordinator")
@@ -529,6 +531,10 @@ class JobManager:
         live = self.pool.wait_for(1, wait)
         if live == 0:
             raise NoWorkers(f"no worker registered within {wait:.0f} s")
+        receivers = int(np.count_nonzero(patches.rho.any(axis=1)))
+        if (not spec.divide.subscenes and job.resume is None and shares_possible(config, receivers)
+                and self._solve_shared(job, scene, patches, size, config, timings, mem)):
+            return
         # two subscenes per worker (over-decomposed), fewer for a small scene
         divide = self._divide(spec, min(SUBSCENES_PER_WORKER * live, subscene_limit(len(patches))))
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
@@ -642,12 +648,79 @@ class JobManager:
             for h in handles:
                 h.drop()
 
+    def _solve_shared(self, job: Job, scene, patches, size: float, config: SolverConfig, timings: dict,
+                      mem: MemoryLog) -> bool:
+        """The job as a shared run (dcrad.share): every live worker holds the whole scene, the
+        direct gather is split by receivers, each worker runs a replica, the replicas are averaged.
+        False (nothing done) when the lights make no exact form factors: the job divides instead."""
+        spec = job.spec
+        t0 = time.perf_counter()
+        k = len(self.pool.live())
+        shares = RemoteShares(job.id, patches, config, self.pool, self.rpc_timeout)
+        accuracy = resolve(config).accuracy
+        job.subscenes = 1
+        job.state, job.started = "running", time.time()
+        self._save(job)
+        timings["setup_s"] = time.perf_counter() - t0
+
+        def on_phase(name: str, elapsed: float, rays: int, est=None, ledger=None) -> None:
+            barrier = 1 if name == "direct" else 2
+            job.workers = sorted(shares.used)
+            job.updates.append(pb.Progress(job=job.summary(), barrier=barrier, rays=rays,
+                                           rms_estimate=float(est.rms) if est is not None else 0.0,
+                                           error=estimate_to_pb(est) if est is not None else None,
+                                           accuracy=accuracy,
+                                           ledger=ledger_to_pb(ledger) if ledger is not None else None,
+                                           bytes_relayed=shares.bytes_sent))
+            self.count(barriers=1, rays=rays)
+            job.notify()
+            mem(f"shared {name}")
+
+        try:
+            run = run_shared(patches, config, k, shares, on_phase=lambda n, t, r: on_phase(n, t, r),
+                             should_stop=job.cancel.is_set)
+        except Cancelled:
+            job.state, job.error = "cancelled", "cancelled while its shares ran: no results"
+            shares.drop()
+            return True
+        finally:
+            pass
+        if run is None:
+            shares.drop()
+            log.info("job %s: its lights make no exact form factors; it divides the scene instead", job.id)
+            job.state = "queued"
+            return False
+        shares.drop()
+        job.residual = run.ledger.residual()
+        on_phase("blend", run.stats.wall_seconds, run.stats.rays, run.estimate, run.ledger)
+        timings["solve_s"] = run.stats.wall_seconds
+        where = f"{len(shares.used)} worker process(es): {', '.join(sorted(shares.used))}"
+        books = shared_books(run, patches, config, timings, where=where)
+        shared = books.shared | {"workers_used": sorted(shares.used), "reassigned": shares.reassigned,
+                                 "bytes_sent": shares.bytes_sent}
+        job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
+        job.preview.render(patches.radiosity, 2)
+        self.count(previews=1)
+        job.preview.close()
+        job.curve.record(run.stats.wall_seconds, 2, patches.radiosity)
+        job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), 2)
+        shared["coordinator_rss_mb"] = dict(mem.phases)
+        settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
+                                  spec.solver.workplane)
+        job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
+                                spec.preview_height or 480, extra={"error_curve": self.curve_dict(job),
+                                                                   "shared": shared})
+        mem("outputs")
+        job.state = "cancelled" if run.stats.stopped_by == "stopped" else "done"
+        return True
+
     @staticmethod
     def _measured_label(run, config: SolverConfig) -> str:
-        if run.stopped_by == "tolerance":
+        stopped_by = getattr(run, "stopped_by", None) or run.stats.stopped_by
+        if stopped_by == "tolerance":
             return f"measured against the final solution (converged to the residual tol {config.tol:g})"
         why = {"stopped": "when cancelled", "time_limit": "at the time limit",
-               "ray_budget": "at the ray budget"}.get(run.stopped_by, f"at the end ({run.stopped_by})")
+               "ray_budget": "at the ray budget"}.get(stopped_by, f"at the end ({stopped_by})")
         return (f"measured against the state {why} (residual {run.ledger.residual():.1e}; "
                 f"not the converged solution)")
 

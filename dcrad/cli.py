@@ -242,6 +242,8 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
             print(f"dcrad: coordinator {cluster.address} with {args.workers} local workers", file=sys.stderr)
             solver = config.as_dict() | scene_values(args)
             divide = divide_from_args(args, args.subscenes or SUBSCENES_PER_WORKER * args.workers).as_dict()
+            if not args.subscenes:  # unset: the coordinator chooses (a shared run where the light is gathered)
+                divide["subscenes"] = None
             try:
                 job = client.submit(cluster.address, path, solver, divide, (args.width, args.height))
             except client.grpc.RpcError as exc:

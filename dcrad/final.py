@@ -96,10 +96,12 @@ class FinalGather:
     the noise of what is read stays.
     """
 
-    def __init__(self, patches: Patches, tracer: Tracer, diff: np.ndarray, direct: np.ndarray,
-                 direct_a: np.ndarray, batch_rays: int = 262144):
+    def __init__(self, patches: Patches, tracer: Tracer | None, diff: np.ndarray, direct: np.ndarray,
+                 direct_a: np.ndarray, batch_rays: int = 262144, rows: np.ndarray | None = None):
         self.patches, self.tracer, self.batch_rays = patches, tracer, batch_rays
-        self.rec = np.flatnonzero(patches.rho.any(axis=1))
+        #: the receivers gathered: every patch with a reflectance, or ``rows`` of them (a shared
+        #: run's share, share.py: its sums go to the one FinalGather that holds them all)
+        self.rec = np.flatnonzero(patches.rho.any(axis=1)) if rows is None else np.asarray(rows, np.int64)
         self.radiosity = patches.radiosity.copy()
         self.diff = diff.copy()
         self.direct, self.direct_a = direct, direct_a
@@ -109,6 +111,12 @@ class FinalGather:
 
     def round(self, rays: int, rng: np.random.Generator):
         """(B (n,3), D (n,3), rays traced, mismatch (3,) W) after ``rays`` more rays per receiver."""
+        traced = self.add(rays, rng)
+        b, d, mismatch = self.solution()
+        return b, d, traced, mismatch
+
+    def add(self, rays: int, rng: np.random.Generator) -> int:
+        """Trace ``rays`` (even) more rays per receiver into the sums; return the rays traced."""
         p, rec = self.patches, self.rec
         half = max(rays // 2, 1)
         refl = self.radiosity - p.emission
@@ -127,6 +135,12 @@ class FinalGather:
                 for c in range(3):
                     q[lo:lo + k, c] += np.bincount(owner[sel], weights=values[:, c], minlength=k)
         self.per_half += half
+        return int(len(rec)) * 2 * half
+
+    def solution(self):
+        """(B (n,3), D (n,3), mismatch (3,) W) of the sums so far."""
+        p, rec = self.patches, self.rec
+        refl = self.radiosity - p.emission
         area = p.area[rec][:, None]
         rho = p.rho[rec]
         q_a = self.sum_a * area / self.per_half
@@ -154,7 +168,7 @@ class FinalGather:
         q_a -= q_b
         del q_b
         d[rec] = rho * (dir_diff + scale * q_a) / area
-        return b, d, int(len(rec)) * 2 * half, mismatch
+        return b, d, mismatch
 
 
 def final_gather(patches: Patches, tracer: Tracer, rays: int, rng: np.random.Generator, diff: np.ndarray,

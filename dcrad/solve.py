@@ -58,6 +58,7 @@ from .direct import (
     GATHER_MARGIN,
     MAX_ANALYTIC_RECEIVERS,
     PILOT_SHARE,
+    DirectTally,
     analytic_lights,
     gather_analytic,
     gather_direct,
@@ -77,7 +78,7 @@ from .shoot import deposit, landing, patch_rays, ray_offset, trace
 from .shooters import ShooterPool, pool_size, spatial_order
 from .snapshots import SnapshotStore
 
-__all__ = ["Solver", "Snapshot", "Stiffness", "stiffness", "solve"]
+__all__ = ["Solver", "Snapshot", "Stiffness", "stiffness", "solve", "top_up", "FINAL_ROUNDS"]
 
 #: batches between exact recounts of the ledger's unshot sums; in between they are
 #: kept incrementally from the rows each batch touched (shooters and rows hit)
@@ -184,6 +185,19 @@ class Solver:
         #: the final gather has run (it runs once, when the shooting has shot nearly all light)
         self.finalised = False
         self._final: FinalGather | None = None
+        #: the direct gather of every receiver, done by a shared run's workers (share.py; None: gather here)
+        self.preset_direct: DirectTally | None = None
+        #: a shared run's replica (share.py): ``replicas`` k of them will be averaged, and
+        #: ``shared_noise`` (W^2/m^4) is the noise mean square they share (their direct light, gathered
+        #: once): the run stops by the error the average will have (``target_error``)
+        self.replicas = 1
+        self.shared_noise = 0.0
+        #: share of the final plan's shooting density this run shoots at: a shared run's k replicas
+        #: shoot 1/k each (the final gathers read their average's noise), 1 otherwise
+        self.shoot_share = 1.0
+        #: stop where the final gather would start (``stopped_by: final_gather``): a shared run's
+        #: replicas leave it to the shared run, which gathers their average split by receivers
+        self.defer_final = False
         self._t0 = time.perf_counter()
 
     # == one Embree call ===========================================================
@@ -379,6 +393,44 @@ class Solver:
         self.commit(batch, tally)
         return self.counted(len(idx), len(batch))
 
+    def direct_inputs(self):
+        """What the direct gather works from: (emitters, their unshot radiosity, their power (W),
+        shadow rays per receiver, the light polygons or None, the FinalPlan or None); None when
+        nothing emits.  Appends the report's line when the scene is too large for exact form factors."""
+        p = self.patches
+        cfg = self.config
+        emitters = np.flatnonzero(p.emission.any(axis=1) & p.unshot.any(axis=1))
+        if len(emitters) == 0:
+            return None
+        amounts = p.unshot[emitters].copy()
+        power = amounts * p.area[emitters, None]
+        shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
+        n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
+        lights = analytic_lights(p, emitters, power, n_receivers)
+        if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
+            self.choices.append(f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
+                                f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
+        plan = final_plan(cfg, len(p)) if lights is not None else None
+        if plan is not None:
+            shadow = plan.shadow_rays
+        return emitters, amounts, power, shadow, lights, plan
+
+    def direct_share(self, rows: np.ndarray, rng: np.random.Generator) -> DirectTally | None:
+        """The exact direct gather (``gather_analytic``) of the receivers ``rows`` only: one
+        worker's share of a shared run (share.py); None when the scene has no exact-form-factor
+        lights or no final plan (a shared run needs both)."""
+        got = self.direct_inputs()
+        if got is None:
+            return None
+        emitters, _, power, shadow, lights, plan = got
+        if lights is None or plan is None:
+            return None
+        t0 = time.perf_counter()
+        tally = gather_analytic(self.patches, self.tracer, emitters, power, lights, shadow, rng,
+                                ray_offset(self.patches), self.config.batch_rays, rows)
+        self.stats.trace_seconds += time.perf_counter() - t0
+        return tally
+
     def gather(self) -> int:
         """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.
 
@@ -392,24 +444,21 @@ class Solver:
         mode with exact form factors: there the run follows an ``accuracy.FinalPlan``
         (shoot the reflected light coarsely, gather it again at the end, final.py),
         which needs the direct light gathered.
+
+        ``preset_direct`` (set by a shared run, share.py): the gather of every receiver, done
+        by the workers' shares; this run books it with its own emitter rays and does not
+        count its shadow rays (the shared run counts them once).
         """
         p = self.patches
         cfg = self.config
         self.gathered = True
-        emitters = np.flatnonzero(p.emission.any(axis=1) & p.unshot.any(axis=1))
-        if len(emitters) == 0:
+        got = self.direct_inputs()
+        if got is None:
             return 0
-        amounts = p.unshot[emitters].copy()
-        power = amounts * p.area[emitters, None]
-        shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
-        n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
-        lights = analytic_lights(p, emitters, power, n_receivers)
-        if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
-            self.choices.append(f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
-                                f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
-        plan = final_plan(cfg, len(p)) if lights is not None else None
-        if plan is not None:
-            shadow = plan.shadow_rays
+        emitters, amounts, power, shadow, lights, plan = got
+        preset = self.preset_direct
+        if preset is not None and (lights is None or plan is None):
+            raise ValueError("a preset direct gather needs exact-form-factor lights and a final plan")
         # a pilot on a random share of the receivers decides whether gathering beats shooting
         receivers = np.flatnonzero(p.rho.any(axis=1))
         size = min(len(receivers), max(64, int(PILOT_SHARE * len(receivers))))
@@ -427,7 +476,8 @@ class Solver:
                else "next-event estimation,")
         # the exact form factors gather every receiver at once (their pilot finds penumbrae by
         # neighbourhood: on a sparse share of the receivers it would find few), then compare
-        gathered = gather_for(pilot if lights is None else receivers)
+        gathered = preset if preset is not None else gather_for(pilot if lights is None else receivers)
+        shadow_counted = 0 if preset is not None else gathered.rays
         self.stats.trace_seconds += time.perf_counter() - t0
         quiet, loud = noise_against_shooting(p, gathered, power, self.power_per_ray)
         ratio = math.sqrt(quiet / loud) if loud > 0 else math.inf
@@ -458,7 +508,7 @@ class Solver:
         if tally is None:  # the gather missed light the rays found: keep the rays' own result
             self.commit(None, shot, shot=power)
             self.choices.append("direct light shot: the gather found no light where the emitters' rays landed some")
-            return self.counted(len(emitters), gathered.rays + int(counts.sum()))
+            return self.counted(len(emitters), shadow_counted + int(counts.sum()))
         self.commit(None, tally, shot=power)
         full, half_a = np.zeros((len(p), 3)), np.zeros((len(p), 3))
         full[tally.hit], half_a[tally.hit] = tally.received, tally.received_a
@@ -468,12 +518,14 @@ class Solver:
                             f"the emitters book how much of it lands, escapes or meets back faces")
         if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
             self.final_rays = plan.final_rays
-            self.power_per_ray = float(self.ledger.emitted.sum()) / plan.shoot_rays_per_power
-            self.config = cfg.replace(min_rays=plan.min_rays)
-            self.choices.append(f"reflected light shot at {plan.shoot_rays_per_power:.3g} rays per emitted power "
+            self.power_per_ray = float(self.ledger.emitted.sum()) / (plan.shoot_rays_per_power * self.shoot_share)
+            # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
+            self.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * self.shoot_share))))
+            self.choices.append(f"reflected light shot at {plan.shoot_rays_per_power * self.shoot_share:.3g} rays "
+                                f"per emitted power "
                                 f"(at least {plan.min_rays} rays a shot), then gathered again with "
                                 f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
-        return self.counted(len(emitters), gathered.rays + int(counts.sum()))
+        return self.counted(len(emitters), shadow_counted + int(counts.sum()))
 
     def final_pending(self) -> bool:
         """True while a final gather is planned and has not run."""
@@ -512,12 +564,10 @@ class Solver:
         for _ in range(FINAL_ROUNDS - 1):
             if not by_accuracy(cfg) or self._final is None:
                 return
-            est = self.estimate()
-            if est.rms_refl <= cfg.accuracy:
+            err = self.target_error()
+            if err <= cfg.accuracy:
                 return
-            done = 2 * self._final.per_half
-            more = int(math.ceil(done * ((est.rms_refl / cfg.accuracy) ** 2 * FINAL_MARGIN - 1.0)))
-            more = min(more, 8 * first - done)
+            more = top_up(2 * self._final.per_half, first, err, cfg.accuracy)
             if more < 2 or (cfg.max_rays and self.stats.rays >= cfg.max_rays):
                 return
             if cfg.time_limit and self.elapsed() >= cfg.time_limit:
@@ -535,6 +585,23 @@ class Solver:
         """The estimated RMS error of B now: noise and unshot bias (noise.py); O(1)."""
         p = self.patches
         return combine(self.noise.sums(), bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho))
+
+    def target_error(self, est: Estimate | None = None) -> float:
+        """The error the accuracy target is held to, over RMS(B - E): the estimate's, or for a shared
+        run's replica the estimate of the average of ``replicas`` such runs (the shared noise stays,
+        the rest falls by 1/k in the mean square, the bias stays)."""
+        est = est if est is not None else self.estimate()
+        if self.replicas <= 1:
+            return est.rms_refl
+        sums = self.noise.sums()
+        area = max(sums.area, 1e-300)
+        rms_r = math.sqrt(max(sums.r2, 0.0) / area)
+        if rms_r <= 0:
+            return est.rms_refl
+        noise_ms = max(sums.d2, 0.0) / area / 4.0
+        shared = min(self.shared_noise, noise_ms)
+        blend_ms = shared + (noise_ms - shared) / self.replicas + (est.bias_refl * rms_r) ** 2
+        return math.sqrt(blend_ms) / rms_r
 
     def snapshot(self, force: bool = False) -> None:
         """Record a snapshot when the ray count passed the next geometric mark."""
@@ -564,7 +631,7 @@ class Solver:
             return "tolerance"
         if by_accuracy(cfg):
             est = self.estimate()
-            if est.rms_refl <= cfg.accuracy:
+            if self.target_error(est) <= cfg.accuracy:
                 return "accuracy"
             if self.final_pending():
                 if est.bias_refl <= BIAS_SHARE * cfg.accuracy:
@@ -603,10 +670,10 @@ class Solver:
             self.snapshot()
             if on_progress is not None:
                 on_progress(self)
-        if reason == "final_gather" or (self.final_pending() and reason == "tolerance"):
+        if (reason == "final_gather" or (self.final_pending() and reason == "tolerance")) and not self.defer_final:
             self.finish()
             if by_accuracy(self.config):
-                reason = "accuracy" if self.estimate().rms_refl <= self.config.accuracy else "noise_floor"
+                reason = "accuracy" if self.target_error() <= self.config.accuracy else "noise_floor"
         self.recount()
         self.snapshot(force=True)
         self.stats.stopped_by = reason
@@ -640,6 +707,14 @@ class Solver:
         """Warnings about the run: flipped normals (back-face share of shot power), escaped light."""
         return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
                                                                                                   self.patches)
+
+
+def top_up(done: int, first: int, err: float, target: float) -> int:
+    """Gather rays per receiver of the next top-up round of a final gather that has ``done`` of them
+    (``first`` in its first round) and reads ``err`` for ``target``: (err / target)^2 x FINAL_MARGIN
+    of them in all, as if the noise were all the gather's sampling, at most 8x the first round's."""
+    more = int(math.ceil(done * ((err / target) ** 2 * FINAL_MARGIN - 1.0)))
+    return min(more, 8 * first - done)
 
 
 @dataclass(frozen=True)

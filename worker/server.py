@@ -11,15 +11,19 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 
 import grpc
+import numpy as np
 
 from coordinator.rpc import shutdown, start_server, stop_on_signals
 from dcrad.config import SolverConfig
 from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
+from dcrad.rays import Tracer
 from dcrad.settings import from_pb
+from dcrad.share import direct_share, patches_from_arrays, run_replica, tally_from_arrays, tally_to_arrays
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb
@@ -57,6 +61,10 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         self.subscenes: dict[tuple[str, int], Subscene] = {}
         self.locks: dict[tuple[str, int], asyncio.Lock] = {}
         self.compute: dict[tuple[str, int], float] = {}  #: s spent in iterate per subscene
+        #: shared runs' patch tables and Embree scenes by job id (dcrad.share), and a lock each:
+        #: a replica resets and fills the table, so one share of a job runs here at a time
+        self.scenes: dict[str, tuple] = {}
+        self.scene_locks: dict[str, asyncio.Lock] = {}
 
     def _get(self, key: pb.SubsceneKey, context):
         k = (key.job_id, key.cell)
@@ -125,7 +133,55 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         for chunk in arrays_to_chunks(arrays):
             yield chunk
 
+    async def Share(self, request_iterator, context):
+        header, asm = await read_stream(request_iterator, "header")
+        if header is None:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Share needs a header first")
+        job = header.job_id
+        try:
+            arrays = asm.result()
+            config = from_pb(SolverConfig, header.solver)
+            if header.phase not in ("direct", "replica") or not 0 <= header.index < max(header.count, 1):
+                raise ValueError(f"bad share: phase {header.phase!r}, index {header.index} of {header.count}")
+            if header.scene:
+                table = {k[len("scene_"):]: v for k, v in arrays.items() if k.startswith("scene_")}
+                patches = patches_from_arrays(table, list(header.names))
+                self.scenes[job] = (patches, await asyncio.to_thread(Tracer, patches.triangles))
+                self.scene_locks.setdefault(job, asyncio.Lock())
+        except (DcradError, KeyError, TypeError, ValueError) as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run share: {exc}")
+        if job not in self.scenes:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"no patch table of job {job} on this worker")
+        patches, tracer = self.scenes[job]
+        cancelled = threading.Event()
+        context.add_done_callback(lambda _: cancelled.set())
+        async with self.scene_locks[job]:
+            t0 = time.perf_counter()
+            try:
+                if header.phase == "direct":
+                    rows = np.asarray(arrays["rows"], np.int64)
+                    if len(rows) and (rows.min() < 0 or rows.max() >= len(patches)):
+                        raise ValueError(f"share rows outside 0..{len(patches) - 1}")
+                    got = await asyncio.to_thread(direct_share, patches, config, tracer, rows, header.index)
+                    out = {} if got is None else tally_to_arrays(got)
+                else:
+                    tally = tally_from_arrays({k[len("tally_"):]: v for k, v in arrays.items()
+                                               if k.startswith("tally_")}, len(patches))
+                    rep = await asyncio.to_thread(run_replica, patches, config, tracer, tally, header.index,
+                                                  header.count, cancelled.is_set)
+                    out = rep.to_arrays()
+            except (DcradError, KeyError, TypeError, ValueError) as exc:
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run share: {exc}")
+            log.info("job %s: %s share %d of %d in %.1f s", job, header.phase, header.index, header.count,
+                     time.perf_counter() - t0)
+        for chunk in arrays_to_chunks(out):
+            yield chunk
+
     async def Drop(self, request, context):
+        if request.cell < 0:  # a shared run's patch table
+            self.scenes.pop(request.job_id, None)
+            self.scene_locks.pop(request.job_id, None)
+            return pb.Empty()
         k = (request.job_id, request.cell)
         self.subscenes.pop(k, None)
         self.locks.pop(k, None)

@@ -377,3 +377,29 @@ class DeliverRequest(_message.Message):
 class Empty(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
+
+class ShareHeader(_message.Message):
+    __slots__ = ("job_id", "phase", "index", "count", "solver", "names", "scene")
+    JOB_ID_FIELD_NUMBER: _ClassVar[int]
+    PHASE_FIELD_NUMBER: _ClassVar[int]
+    INDEX_FIELD_NUMBER: _ClassVar[int]
+    COUNT_FIELD_NUMBER: _ClassVar[int]
+    SOLVER_FIELD_NUMBER: _ClassVar[int]
+    NAMES_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
+    job_id: str
+    phase: str
+    index: int
+    count: int
+    solver: SolverSettings
+    names: _containers.RepeatedScalarFieldContainer[str]
+    scene: bool
+    def __init__(self, job_id: _Optional[str] = ..., phase: _Optional[str] = ..., index: _Optional[int] = ..., count: _Optional[int] = ..., solver: _Optional[_Union[SolverSettings, _Mapping]] = ..., names: _Optional[_Iterable[str]] = ..., scene: _Optional[bool] = ...) -> None: ...
+
+class ShareRequest(_message.Message):
+    __slots__ = ("header", "array")
+    HEADER_FIELD_NUMBER: _ClassVar[int]
+    ARRAY_FIELD_NUMBER: _ClassVar[int]
+    header: ShareHeader
+    array: ArrayChunk
+    def __init__(self, header: _Optional[_Union[ShareHeader, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...

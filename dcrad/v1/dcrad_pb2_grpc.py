@@ -394,6 +394,11 @@ class WorkerStub:
                 request_serializer=dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.SerializeToString,
                 response_deserializer=dcrad_dot_v1_dot_dcrad__pb2.Empty.FromString,
                 _registered_method=True)
+        self.Share = channel.stream_stream(
+                '/dcrad.v1.Worker/Share',
+                request_serializer=dcrad_dot_v1_dot_dcrad__pb2.ShareRequest.SerializeToString,
+                response_deserializer=dcrad_dot_v1_dot_dcrad__pb2.ArrayChunk.FromString,
+                _registered_method=True)
 
 
 class WorkerServicer:
@@ -430,6 +435,14 @@ class WorkerServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Share(self, request_iterator, context):
+        """One share of a shared run; the reply streams its result arrays (direct: a tally; replica:
+        the replica's state).  NOT_FOUND when no patch table was sent and none is held for the job.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_WorkerServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -457,6 +470,11 @@ def add_WorkerServicer_to_server(servicer, server):
                     servicer.Drop,
                     request_deserializer=dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.FromString,
                     response_serializer=dcrad_dot_v1_dot_dcrad__pb2.Empty.SerializeToString,
+            ),
+            'Share': grpc.stream_stream_rpc_method_handler(
+                    servicer.Share,
+                    request_deserializer=dcrad_dot_v1_dot_dcrad__pb2.ShareRequest.FromString,
+                    response_serializer=dcrad_dot_v1_dot_dcrad__pb2.ArrayChunk.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -594,6 +612,33 @@ class Worker:
             '/dcrad.v1.Worker/Drop',
             dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.SerializeToString,
             dcrad_dot_v1_dot_dcrad__pb2.Empty.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Share(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/dcrad.v1.Worker/Share',
+            dcrad_dot_v1_dot_dcrad__pb2.ShareRequest.SerializeToString,
+            dcrad_dot_v1_dot_dcrad__pb2.ArrayChunk.FromString,
             options,
             channel_credentials,
             insecure,
