@@ -56,7 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lights import Lights, light_polygons, polygon_form_factor
+from .lights import Lights, form_factors, light_polygons
 from .patches import Patches
 from .rays import Tracer
 from .sampling import lattice, triangle_points
@@ -325,6 +325,9 @@ class LightLists:
     cell: np.ndarray  #: (m,) the cell of each listed (cell, light)
     light: np.ndarray  #: (m,) its light
     q: np.ndarray  #: (m,) keep chance per half, in (0, 1]
+    #: (m,) True where light_pairs' plane tests hold for every receiver of the cell (bounds over
+    #: the cell's boxes, with a margin): its pairs need no test of their own
+    sure: np.ndarray | None = None
 
     def expected_pairs(self) -> float:
         """Expected pair entries (a near pair is one entry, a far one draws per half)."""
@@ -382,7 +385,8 @@ def light_lists(patches: Patches, lights: Lights, receivers: np.ndarray) -> Ligh
     ny = lights.normal
     offset = _plane_offsets(lights)
     n_c = len(cells)
-    out_c, out_l, out_q = [], [], []
+    margin = 1e-9 * patches.scale
+    out_c, out_l, out_q, out_s = [], [], [], []
     step = max(1, _BLOCK // max(n_l, 1))
     for a in range(0, n_c, step):
         lc, hc = lo_c[a:a + step, None, :], hi_c[a:a + step, None, :]
@@ -403,9 +407,18 @@ def light_lists(patches: Patches, lights: Lights, receivers: np.ndarray) -> Ligh
         out_c.append((a + ci).astype(np.int32))
         out_l.append(li.astype(np.int32))
         out_q.append(q[ci, li].astype(np.float32))
+        # light_pairs' tests by lower bounds: the whole cell box in front of the light's plane,
+        # and n_x . (y - x) > 0 for every normal of the cell, corner of its box and point of the
+        # light's box (so every vertex of the light is above every receiver's plane)
+        lc, hc, dlo, dhi, a_lo, a_hi = (t[ci, 0] if t.shape[1] == 1 else t[ci, li]
+                                        for t in (lc, hc, dlo, dhi, a_lo, a_hi))
+        in_front = np.minimum(ny[li] * lc, ny[li] * hc).sum(axis=1) - offset[li]
+        hx_lo = np.minimum(np.minimum(a_lo * dlo, a_lo * dhi), np.minimum(a_hi * dlo, a_hi * dhi)).sum(axis=1)
+        out_s.append((in_front > margin) & (hx_lo > margin))
     cat = (lambda parts, dt: np.concatenate(parts).astype(dt, copy=False) if parts else np.zeros(0, dt))
     # compact: on the 20x20 office most of the 800 lamps are far lights of most cells (q tiny, > 0)
-    return LightLists(order, start, count, cat(out_c, np.int32), cat(out_l, np.int32), cat(out_q, np.float32))
+    return LightLists(order, start, count, cat(out_c, np.int32), cat(out_l, np.int32), cat(out_q, np.float32),
+                      cat(out_s, bool))
 
 
 def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, rng: np.random.Generator,
@@ -421,9 +434,10 @@ def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, rng: np
         lists = light_lists(patches, lights, receivers)
     lo, hi = (0, len(lists.cell)) if cells is None else np.searchsorted(lists.cell, cells)
     l_cell, l_light, l_q = lists.cell[lo:hi], lists.light[lo:hi], lists.q[lo:hi]
+    l_sure = lists.sure[lo:hi] if lists.sure is not None else np.zeros(hi - lo, bool)
     v = patches.vertices
     near = l_q >= 1.0
-    parts_s, parts_l, parts_m, parts_w = [], [], [], []
+    parts_s, parts_l, parts_m, parts_w, parts_t = [], [], [], [], []
     # near lights: every receiver of the cell, both halves
     nc, nl = l_cell[near], l_light[near]
     per = lists.count[nc]
@@ -433,9 +447,10 @@ def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, rng: np
     parts_l.append(nl[rows])
     parts_m.append(np.full(len(rows), 3, np.int8))
     parts_w.append(np.ones(len(rows)))
+    parts_t.append(l_sure[near][rows])
     del rows, within
     # far lights: drawn per half
-    fc, fl, fq = l_cell[~near], l_light[~near], l_q[~near]
+    fc, fl, fq, fs = l_cell[~near], l_light[~near], l_q[~near], l_sure[~near]
     for h in range(2):
         drawn = rng.binomial(lists.count[fc], fq.astype(np.float64))
         rows = np.repeat(np.arange(len(fc)), drawn)
@@ -444,23 +459,26 @@ def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, rng: np
         parts_l.append(fl[rows])
         parts_m.append(np.full(len(rows), 1 << h, np.int8))
         parts_w.append(1.0 / fq[rows].astype(np.float64))  # 1/q of the very q drawn with
+        parts_t.append(fs[rows])
     slot, light = np.concatenate(parts_s), np.concatenate(parts_l)
     mask, inv_q = np.concatenate(parts_m), np.concatenate(parts_w)
-    del parts_s, parts_l, parts_m, parts_w
-    # the exact plane tests per entry, in chunks
+    ok = np.concatenate(parts_t)  # the cells' bounds say the tests hold
+    del parts_s, parts_l, parts_m, parts_w, parts_t
+    # the exact plane tests per entry the bounds did not settle, in chunks
     ny = lights.normal
     offset = _plane_offsets(lights)
     verts = _light_vertices(lights)  # (L, W, 3)
-    ok = np.zeros(len(slot), bool)
-    for a in range(0, len(slot), chunk):
-        r = receivers[slot[a:a + chunk]]
-        lt = light[a:a + chunk]
+    test = np.flatnonzero(~ok)
+    for a in range(0, len(test), chunk):
+        at = test[a:a + chunk]
+        r = receivers[slot[at]]
+        lt = light[at]
         corners = v[patches.faces[r]]  # (m,3,3)
         front = (np.einsum("mcj,mj->mc", corners, ny[lt]) > offset[lt][:, None]).any(axis=1)
         nrm = patches.normal[r]
         base = (corners[:, 0] * nrm).sum(axis=1)
         above = (np.einsum("mvj,mj->mv", verts[lt], nrm) > base[:, None]).any(axis=1)
-        ok[a:a + chunk] = front & above
+        ok[at] = front & above
     keep = np.flatnonzero(ok)
     srt = keep[np.argsort(slot[keep], kind="stable")]
     present = np.stack([(mask[srt] & 1) > 0, (mask[srt] & 2) > 0], axis=1)
@@ -533,8 +551,10 @@ def _loops_of(lights: Lights, rec: np.ndarray, light: np.ndarray):
 def _centroid_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, light: np.ndarray) -> np.ndarray:
     owner, loop = _loops_of(lights, rec, light)
     r = rec[owner]
-    part = polygon_form_factor(patches.centroid[r], patches.normal[r], lights.loops[loop],
-                               lights.normal[lights.loop_light[loop]])
+    part = form_factors(patches.centroid[r][:, None, :], patches.normal[r], lights.loops[loop],
+                        lights.normal[lights.loop_light[loop]])[:, 0]
+    if len(owner) == len(rec):  # one loop per light: owner is 0, 1, 2, ...
+        return np.maximum(part, 0.0)
     return np.maximum(np.bincount(owner, weights=part, minlength=len(rec)), 0.0)
 
 
@@ -543,19 +563,22 @@ def _rotated_form_factors(patches: Patches, lights: Lights, rec: np.ndarray, lig
     v = patches.vertices
     owner, loop = _loops_of(lights, rec, light)
     r = rec[owner]
-    f = patches.faces[r]
-    corners = (v[f[:, 0]], v[f[:, 1]], v[f[:, 2]])
-    nx = patches.normal[r]
-    ny = lights.normal[lights.loop_light[loop]]
-    ff = np.zeros((len(rec), 2))
-    for h in range(2):
-        s = np.sqrt(u[owner, h, 0])
-        bary = (1.0 - s, s * (1.0 - u[owner, h, 1]), s * u[owner, h, 1])
-        for k in range(3):
-            b = (bary[k % 3], bary[(k + 1) % 3], bary[(k + 2) % 3])
-            x = b[0][:, None] * corners[0] + b[1][:, None] * corners[1] + b[2][:, None] * corners[2]
-            part = polygon_form_factor(x, nx, lights.loops[loop], ny)
-            ff[:, h] += np.bincount(owner, weights=part, minlength=len(rec)) / 3.0
+    corners = v[patches.faces[r]]  # (m,3,3)
+    # the six points of each entry: half h, rotation k (barycentric coordinates shifted by k)
+    s = np.sqrt(u[owner, :, 0])  # (m,2)
+    bary = np.stack([1.0 - s, s * (1.0 - u[owner, :, 1]), s * u[owner, :, 1]], axis=2)  # (m,2,3)
+    x = np.empty((len(owner), 2, 3, 3))
+    for k in range(3):
+        for j in range(3):
+            x[:, :, k, j] = (bary[:, :, k % 3] * corners[:, None, 0, j]
+                             + bary[:, :, (k + 1) % 3] * corners[:, None, 1, j]
+                             + bary[:, :, (k + 2) % 3] * corners[:, None, 2, j])
+    part = form_factors(x.reshape(len(owner), 6, 3), patches.normal[r], lights.loops[loop],
+                        lights.normal[lights.loop_light[loop]]).reshape(-1, 2, 3)
+    part = part[:, :, 0] / 3.0 + part[:, :, 1] / 3.0 + part[:, :, 2] / 3.0
+    if len(owner) == len(rec):
+        return np.maximum(part, 0.0)
+    ff = np.stack([np.bincount(owner, weights=part[:, h], minlength=len(rec)) for h in range(2)], axis=1)
     return np.maximum(ff, 0.0)
 
 
@@ -597,13 +620,19 @@ def _visibility(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.n
             fr = patches.faces[r]
             x = triangle_points(v[fr[:, 0]], v[fr[:, 1]], v[fr[:, 2]], u[:, 0:2])
             lp = light[entry]
-            pick = np.clip(np.searchsorted(key, lp + u[:, 4], side="right") - 1, 0, len(order) - 1)
-            g = patches.faces[emitters[order[pick]]]
-            y = triangle_points(v[g[:, 0]], v[g[:, 1]], v[g[:, 2]], u[:, 2:4])
+            y = np.empty((m, 3))
             if lights.parallelogram is not None and lights.corner is not None and lights.edges is not None:
-                flat = np.flatnonzero(lights.parallelogram[lp])  # the whole light, stratified in 2-D
+                is_flat = lights.parallelogram[lp]
+                flat = np.flatnonzero(is_flat)  # the whole light, stratified in 2-D
                 ed = lights.edges[lp[flat]]
                 y[flat] = lights.corner[lp[flat]] + u[flat, 2:3] * ed[:, 0] + u[flat, 3:4] * ed[:, 1]
+                tri = np.flatnonzero(~is_flat)
+            else:
+                tri = np.arange(m)
+            if len(tri):  # a triangle of the light by area, then a point on it
+                pick = np.clip(np.searchsorted(key, lp[tri] + u[tri, 4], side="right") - 1, 0, len(order) - 1)
+                g = patches.faces[emitters[order[pick]]]
+                y[tri] = triangle_points(v[g[:, 0]], v[g[:, 1]], v[g[:, 2]], u[tri, 2:4])
             nx, ny = patches.normal[r], lights.normal[lp]
             d = y - x
             r2 = np.einsum("ij,ij->i", d, d)

@@ -23,7 +23,7 @@ import numpy as np
 
 from .patches import Patches
 
-__all__ = ["Lights", "light_polygons", "polygon_form_factor", "MAX_LOOP_VERTICES"]
+__all__ = ["Lights", "light_polygons", "polygon_form_factor", "form_factors", "MAX_LOOP_VERTICES"]
 
 #: outline vertices of all lights above which no polygons are built (the sampled gather is used)
 MAX_LOOP_VERTICES = 20_000
@@ -174,6 +174,76 @@ def polygon_form_factor(x: np.ndarray, nx: np.ndarray, loops: np.ndarray, ny: np
     The loop is clipped to x's horizon; zero when x is behind the loop's plane.
     Exact for a planar emitter without occlusion (visibility is the shadow rays' job).
     """
+    return form_factors(x[:, None, :], nx, loops, ny)[:, 0]
+
+
+def form_factors(x: np.ndarray, nx: np.ndarray, loops: np.ndarray, ny: np.ndarray) -> np.ndarray:
+    """(P,m) ``polygon_form_factor`` from m points x (P,m,3) that share a facing nx (P,3) and a
+    loop (P,V,3) facing ny (P,3): the points of one receiver to one light's loop.
+
+    Written out per component on (P,m,V) arrays (no einsum, cross or gather): an outline
+    wholly above a point's horizon (most pairs: nothing to clip) takes Lambert's sum as it
+    stands; the points whose horizon cuts the outline are clipped (``_clipped_form_factor``,
+    Sutherland-Hodgman), the points with no vertex above it get 0.  Float64 throughout: the
+    terms of a far light cancel to its form factor (a light of angular size t leaves about
+    eps / t of relative round-off), which float32 would raise to 1e-7 / t.
+    """
+    p, m, _ = x.shape
+    w = loops.shape[1]
+    # the pairs on the last axis (long contiguous rows for every ufunc): (V+1, m, P) per component
+    n0, n1, n2 = (np.ascontiguousarray(nx[:, j]) for j in range(3))
+    xt = [np.ascontiguousarray(x[:, :, j].T) for j in range(3)]  # (m,P)
+    # u_k = y_k - x, closed (vertex V is vertex 0 again)
+    ux, uy, uz = (np.empty((w + 1, m, p)) for _ in range(3))
+    for u, j in ((ux, 0), (uy, 1), (uz, 2)):
+        np.subtract(loops[:, :, j].T[:, None, :], xt[j][None], out=u[:w])
+        u[w] = u[0]
+    # heights above the horizon n.u_k: how many vertices are above it
+    h = ux[:w] * n0
+    h += uy[:w] * n1
+    h += uz[:w] * n2
+    above = np.count_nonzero(h > 0.0, axis=0)  # (m,P)
+    del h
+    ax, ay, az = ux[:-1], uy[:-1], uz[:-1]
+    bx, by, bz = ux[1:], uy[1:], uz[1:]
+    cx = ay * bz
+    cx -= az * by
+    cy = az * bx
+    cy -= ax * bz
+    cz = ax * by
+    cz -= ay * bx
+    dot = ax * bx
+    dot += ay * by
+    dot += az * bz
+    del ux, uy, uz, ax, ay, az, bx, by, bz
+    cn = cx * cx
+    cn += cy * cy
+    cn += cz * cz
+    np.sqrt(cn, out=cn)
+    theta = np.arctan2(cn, dot)
+    nc = cx * n0
+    nc += cy * n1
+    nc += cz * n2
+    cn[cn <= 0.0] = 1.0  # a zero-length edge (a padded vertex): nc = 0 too
+    theta *= nc
+    theta /= cn
+    ff = theta[0]
+    for k in range(1, w):
+        ff += theta[k]
+    ff = -ff / (2.0 * math.pi)  # (m,P)
+    front = ((xt[0] - loops[:, 0, 0]) * ny[:, 0] + (xt[1] - loops[:, 0, 1]) * ny[:, 1]
+             + (xt[2] - loops[:, 0, 2]) * ny[:, 2]) > 0.0
+    ff[(above == 0) | ~front] = 0.0
+    ff = np.ascontiguousarray(ff.T)  # (P,m)
+    cut = np.nonzero(((above > 0) & (above < w) & front).T)
+    if len(cut[0]):
+        pair = cut[0]
+        ff[cut] = _clipped_form_factor(x[cut], nx[pair], loops[pair], ny[pair])
+    return ff
+
+
+def _clipped_form_factor(x: np.ndarray, nx: np.ndarray, loops: np.ndarray, ny: np.ndarray) -> np.ndarray:
+    """``polygon_form_factor`` by clipping every loop to the horizon (any loop; the general path)."""
     p, w, _ = loops.shape
     u = loops - x[:, None, :]
     h = np.einsum("pvk,pk->pv", u, nx)
