@@ -663,47 +663,50 @@ class JobManager:
         self._save(job)
         timings["setup_s"] = time.perf_counter() - t0
 
-        def on_phase(name: str, elapsed: float, rays: int, est=None, ledger=None) -> None:
-            barrier = 1 if name == "direct" else 2
+        phases: list[str] = []
+
+        def on_phase(name: str, elapsed: float, rays: int, est=None) -> None:
+            """Progress after each phase (direct, shoot, each gather round): the status page's barriers."""
+            phases.append(name)
             job.workers = sorted(shares.used)
-            job.updates.append(pb.Progress(job=job.summary(), barrier=barrier, rays=rays,
+            job.updates.append(pb.Progress(job=job.summary(), barrier=len(phases), rays=rays,
                                            rms_estimate=float(est.rms) if est is not None else 0.0,
                                            error=estimate_to_pb(est) if est is not None else None,
-                                           accuracy=accuracy,
-                                           ledger=ledger_to_pb(ledger) if ledger is not None else None,
-                                           bytes_relayed=shares.bytes_sent))
-            self.count(barriers=1, rays=rays)
+                                           accuracy=accuracy, bytes_relayed=shares.bytes_sent))
+            self.count(barriers=1)
             job.notify()
             mem(f"shared {name}")
 
         try:
-            run = run_shared(patches, config, k, shares, on_phase=lambda n, t, r: on_phase(n, t, r),
-                             should_stop=job.cancel.is_set)
+            run = run_shared(patches, config, k, shares, on_phase=on_phase, should_stop=job.cancel.is_set)
         except Cancelled:
             job.state, job.error = "cancelled", "cancelled while its shares ran: no results"
-            shares.drop()
             return True
         finally:
-            pass
-        if run is None:
             shares.drop()
+        if run is None:
             log.info("job %s: its lights make no exact form factors; it divides the scene instead", job.id)
             job.state = "queued"
             return False
-        shares.drop()
+        self.count(rays=run.stats.rays)
         job.residual = run.ledger.residual()
-        on_phase("blend", run.stats.wall_seconds, run.stats.rays, run.estimate, run.ledger)
+        last = job.updates[-1]
+        last.ledger.CopyFrom(ledger_to_pb(run.ledger))
+        last.shots = run.stats.shots
         timings["solve_s"] = run.stats.wall_seconds
         where = f"{len(shares.used)} worker process(es): {', '.join(sorted(shares.used))}"
         books = shared_books(run, patches, config, timings, where=where)
         shared = books.shared | {"workers_used": sorted(shares.used), "reassigned": shares.reassigned,
                                  "bytes_sent": shares.bytes_sent}
         job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
-        job.preview.render(patches.radiosity, 2)
+        job.preview.render(patches.radiosity, len(phases))
         self.count(previews=1)
         job.preview.close()
-        job.curve.record(run.stats.wall_seconds, 2, patches.radiosity)
-        job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), 2)
+        # the states after the direct gather, the shooting and the gather (the last is the result)
+        for i, (snap, b) in enumerate(zip(run.snapshots[1:], run.snapshot_B[1:]), 1):
+            job.curve.record(snap.time, i, b)
+        job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config),
+                          len(run.snapshots) - 1)
         shared["coordinator_rss_mb"] = dict(mem.phases)
         settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
                                   spec.solver.workplane)
@@ -732,7 +735,8 @@ class JobManager:
         """
         est, seen = [], set()
         for p in list(job.updates):
-            if p.barrier > 0 and p.barrier not in seen:  # the closing message repeats the last barrier
+            # the closing message repeats the last barrier; a shared run's first phase has no estimate yet
+            if p.barrier > 0 and p.barrier not in seen and (p.HasField("error") or p.rms_estimate > 0):
                 seen.add(p.barrier)
                 est.append([p.job.elapsed_s, p.rms_estimate, p.barrier])
         measured = job.curve.measured

@@ -132,6 +132,15 @@ class RemoteShares:
             stop.set()
         return [Replica.from_arrays(a, len(self.patches)) for a in out]
 
+    def gather(self, shot, shares: list[np.ndarray], rounds: list[int]):
+        """[(sum_a, sum_b, rays traced)] of each share's final gather after ``rounds``."""
+        inputs = shot.to_arrays() | {"rounds": np.asarray(rounds, np.int64)}
+        out = self._all("gather", [inputs | {"rows": np.asarray(r, np.int64)} for r in shares])
+        for a, rows in zip(out, shares):
+            if np.shape(a.get("sum_a")) != (len(rows), 3) or np.shape(a.get("sum_b")) != (len(rows), 3):
+                raise DcradError("a worker's gather share does not match its receivers")
+        return [(a["sum_a"], a["sum_b"], int(a["traced"][0])) for a in out]
+
     def cancel(self) -> None:
         """Cancel every call in flight (the job was cancelled)."""
         self.cancelled = True

@@ -201,8 +201,20 @@ class Shot:
     tallies: np.ndarray
 
     def to_arrays(self) -> dict:
+        """What a gather share reads (the books stay with the shared run)."""
         return {"shot_radiosity": self.radiosity, "shot_diff": self.diff, "shot_direct": self.direct,
                 "shot_direct_a": self.direct_a}
+
+    @staticmethod
+    def from_arrays(arrays: dict, n: int) -> "Shot":
+        """``to_arrays``' inverse (a gather share's input; no books); ValueError for a wrong shape."""
+        got = {}
+        for name in ("radiosity", "diff", "direct", "direct_a"):
+            a = np.asarray(arrays[f"shot_{name}"], np.float64)
+            if a.shape != (n, 3):
+                raise ValueError(f"shot array {name} has shape {a.shape}, not ({n}, 3)")
+            got[name] = a
+        return Shot(**got, ledger=Ledger(), tallies=np.zeros((4, 3)))
 
 
 def blend(patches: Patches, replicas: list[Replica]) -> tuple[Shot, NoiseTally]:

@@ -405,6 +405,11 @@ class Solver:
         amounts = p.unshot[emitters].copy()
         power = amounts * p.area[emitters, None]
         shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
+        if self.preset_direct is not None:  # gathered by a shared run's workers: exact, with a final plan
+            plan = final_plan(cfg, len(p))
+            if plan is None:
+                raise ValueError("a preset direct gather needs accuracy mode with the direct light gathered")
+            return emitters, amounts, power, plan.shadow_rays, None, plan
         n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
         lights = analytic_lights(p, emitters, power, n_receivers)
         if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
@@ -457,8 +462,6 @@ class Solver:
             return 0
         emitters, amounts, power, shadow, lights, plan = got
         preset = self.preset_direct
-        if preset is not None and (lights is None or plan is None):
-            raise ValueError("a preset direct gather needs exact-form-factor lights and a final plan")
         # a pilot on a random share of the receivers decides whether gathering beats shooting
         receivers = np.flatnonzero(p.rho.any(axis=1))
         size = min(len(receivers), max(64, int(PILOT_SHARE * len(receivers))))
@@ -473,6 +476,7 @@ class Solver:
             return gather_direct(p, self.tracer, emitters, power, shadow, self.rng, off, cfg.batch_rays, rows)
 
         how = (f"exact form factors to {len(lights)} light polygon(s), visibility from" if lights is not None
+               else "exact form factors (the shared run's direct shares), visibility from" if preset is not None
                else "next-event estimation,")
         # the exact form factors gather every receiver at once (their pilot finds penumbrae by
         # neighbourhood: on a sparse share of the receivers it would find few), then compare
@@ -491,7 +495,7 @@ class Solver:
                                 f"{ratio:.2f}x the noise shooting the emitters would, {on} (its "
                                 f"{gathered.rays} shadow rays are counted)")
             return self.counted(0, gathered.rays)
-        if lights is None:
+        if lights is None and preset is None:
             t0 = time.perf_counter()
             rest = np.setdiff1d(receivers, pilot, assume_unique=True)
             gathered = merge(gathered, gather_for(rest), p)

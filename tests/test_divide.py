@@ -7,7 +7,7 @@ import pytest
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.divide import AUTO_DIVIDE_PATCHES, DivideConfig, auto_workers, solve_divided
+from dcrad.divide import AUTO_DIVIDE_PATCHES, SHARE_PATCHES, DivideConfig, auto_workers, solve_divided
 from dcrad.energy import rms_error
 from dcrad.pipeline import prepare
 from dcrad.solve import Solver
@@ -229,12 +229,14 @@ def test_placement_evens_the_expected_work_against_the_best_split():
 
 
 def test_default_workers_follow_the_run_not_only_the_size():
-    """`dcrad solve`'s default: one process wherever accuracy mode gathers the light (the
-    final plan exists only there), two local workers for big shooting runs, one process for
-    small ones or on one CPU; the report's line says why."""
+    """`dcrad solve`'s default: two local workers sharing the run where accuracy mode gathers the
+    light (share.py) and the scene is big enough, two dividing it for big shooting runs, one
+    process for small ones or on one CPU; the report's line says why."""
     big = 4 * AUTO_DIVIDE_PATCHES
     assert auto_workers(big, 2, gathers=False)[0] == 2
     workers, why = auto_workers(big, 2, gathers=True)
-    assert workers == 0 and "final gather" in why
+    assert workers == 2 and "sharing" in why
+    workers, why = auto_workers(SHARE_PATCHES // 2, 2, gathers=True)
+    assert workers == 0 and str(SHARE_PATCHES) in why
     assert auto_workers(AUTO_DIVIDE_PATCHES // 2, 2)[0] == 0
     assert auto_workers(big, 1)[0] == 0

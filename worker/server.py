@@ -23,7 +23,15 @@ from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
 from dcrad.rays import Tracer
 from dcrad.settings import from_pb
-from dcrad.share import direct_share, patches_from_arrays, run_replica, tally_from_arrays, tally_to_arrays
+from dcrad.share import (
+    Shot,
+    direct_share,
+    gather_share,
+    patches_from_arrays,
+    run_replica,
+    tally_from_arrays,
+    tally_to_arrays,
+)
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb
@@ -65,6 +73,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         #: a replica resets and fills the table, so one share of a job runs here at a time
         self.scenes: dict[str, tuple] = {}
         self.scene_locks: dict[str, asyncio.Lock] = {}
+        #: shared runs' final gathers by (job id, share index), continued round by round
+        self.gathers: dict[tuple[str, int], object] = {}
 
     def _get(self, key: pb.SubsceneKey, context):
         k = (key.job_id, key.cell)
@@ -141,7 +151,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         try:
             arrays = asm.result()
             config = from_pb(SolverConfig, header.solver)
-            if header.phase not in ("direct", "replica") or not 0 <= header.index < max(header.count, 1):
+            if header.phase not in ("direct", "replica", "gather") or not 0 <= header.index < max(header.count, 1):
                 raise ValueError(f"bad share: phase {header.phase!r}, index {header.index} of {header.count}")
             if header.scene:
                 table = {k[len("scene_"):]: v for k, v in arrays.items() if k.startswith("scene_")}
@@ -158,12 +168,20 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         async with self.scene_locks[job]:
             t0 = time.perf_counter()
             try:
+                rows = np.asarray(arrays.get("rows", np.zeros(0)), np.int64)
+                if len(rows) and (rows.min() < 0 or rows.max() >= len(patches)):
+                    raise ValueError(f"share rows outside 0..{len(patches) - 1}")
                 if header.phase == "direct":
-                    rows = np.asarray(arrays["rows"], np.int64)
-                    if len(rows) and (rows.min() < 0 or rows.max() >= len(patches)):
-                        raise ValueError(f"share rows outside 0..{len(patches) - 1}")
                     got = await asyncio.to_thread(direct_share, patches, config, tracer, rows, header.index)
                     out = {} if got is None else tally_to_arrays(got)
+                elif header.phase == "gather":
+                    shot = Shot.from_arrays(arrays, len(patches))
+                    rounds = [int(r) for r in arrays["rounds"]]
+                    key = (job, header.index)
+                    fg, traced = await asyncio.to_thread(gather_share, patches, config, tracer, shot, rows,
+                                                         header.index, rounds, self.gathers.get(key))
+                    self.gathers[key] = fg
+                    out = {"sum_a": fg.sum_a, "sum_b": fg.sum_b, "traced": np.array([traced], np.int64)}
                 else:
                     tally = tally_from_arrays({k[len("tally_"):]: v for k, v in arrays.items()
                                                if k.startswith("tally_")}, len(patches))
@@ -181,6 +199,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         if request.cell < 0:  # a shared run's patch table
             self.scenes.pop(request.job_id, None)
             self.scene_locks.pop(request.job_id, None)
+            for key in [key for key in self.gathers if key[0] == request.job_id]:
+                del self.gathers[key]
             return pb.Empty()
         k = (request.job_id, request.cell)
         self.subscenes.pop(k, None)

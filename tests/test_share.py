@@ -1,0 +1,218 @@
+"""Shared runs (dcrad.share): k workers share one solve of the whole scene.
+
+Checked against independent truths: a converged solution with other seeds (the shared run's
+error is what its estimate says, and what a one-process run at the same target reaches), the
+books (the ledger closes), the wire forms (round trips), and real worker processes talking
+gRPC (bit-identical to the in-process shares, also with a worker killed mid-run).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+
+import grpc
+import numpy as np
+import pytest
+
+import scenes
+from coordinator.embedded import LocalCluster
+from dcrad.config import SolverConfig
+from dcrad.energy import rms_error
+from dcrad.passes import solve_to_accuracy
+from dcrad.pipeline import prepare
+from dcrad.rays import Tracer
+from dcrad.share import (
+    LocalShares,
+    Replica,
+    Shot,
+    receiver_shares,
+    run_shared,
+    tally_from_arrays,
+    tally_to_arrays,
+)
+from dcrad.v1 import dcrad_pb2 as pb
+from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+from dcrad.wire import file_chunks
+
+ACCURACY = 0.05
+
+
+@pytest.fixture(scope="module")
+def office(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("office")
+    scenes.write_builtin("office", folder, rows=1, cols=2, seed=0)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def table(office):
+    _, patches, _ = prepare(office / "office.obj")
+    return patches, Tracer(patches.triangles)
+
+
+@pytest.fixture(scope="module")
+def reference(table):
+    """A converged solution with its own seed (0.5% of the reflected light)."""
+    patches, tracer = table
+    patches.reset()
+    solve_to_accuracy(patches, SolverConfig(accuracy=0.005, seed=999), tracer)
+    return patches.radiosity.copy()
+
+
+def refl_rms(patches, b):
+    return float(np.sqrt(((b - patches.emission) ** 2).mean(axis=1) @ patches.area / patches.area.sum()))
+
+
+@pytest.fixture(scope="module")
+def shared_two(table):
+    patches, tracer = table
+    patches.reset()
+    cfg = SolverConfig(accuracy=ACCURACY, seed=5)
+    run = run_shared(patches, cfg, 2, LocalShares(patches, cfg, tracer))
+    return run, patches.radiosity.copy()
+
+
+def test_receiver_shares_split_every_receiver_once(table):
+    patches, _ = table
+    parts = receiver_shares(patches, 3)
+    every = np.concatenate(parts)
+    assert np.array_equal(np.sort(every), np.flatnonzero(patches.rho.any(axis=1)))
+    assert max(map(len, parts)) - min(map(len, parts)) <= 1
+    assert all(np.all(np.diff(p) > 0) for p in parts)
+
+
+def test_shared_run_meets_its_target_as_its_estimate_says(table, reference, shared_two):
+    """Against the converged reference: the shared run's measured error is within 1.5x of its
+    estimate, near the target, and like a one-process run's at the same target; the books close."""
+    patches, tracer = table
+    run, b = shared_two
+    measured = rms_error(b, reference, patches.area) / refl_rms(patches, reference)
+    est = run.estimate.rms_refl
+    assert run.stats.stopped_by == "accuracy" and est <= ACCURACY
+    assert est / 1.5 <= measured <= est * 1.5, (est, measured)
+    assert run.ledger.closure() < 1e-10
+    assert run.stats.rays == run.direct_rays + sum(r.rays for r in run.replicas) + run.gather_rays
+    assert run.rounds and run.rounds[0] >= 16  # the gather ran, with the job's rays per receiver
+    patches.reset()
+    solver = solve_to_accuracy(patches, SolverConfig(accuracy=ACCURACY, seed=5), tracer)
+    one = rms_error(patches.radiosity, reference, patches.area) / refl_rms(patches, reference)
+    assert solver.stats.stopped_by == "accuracy"
+    assert measured <= 1.5 * max(one, 0.5 * ACCURACY), (measured, one)
+    # the replicas are independent: their shot solutions differ
+    a, c = run.replicas
+    assert not np.array_equal(a.radiosity, c.radiosity)
+
+
+def test_wire_forms_round_trip(table, shared_two):
+    patches, tracer = table
+    run, _ = shared_two
+    rep = run.replicas[0]
+    back = Replica.from_arrays(rep.to_arrays(), len(patches))
+    for name in Replica._STATE + ("tallies", "back_by_obj"):
+        assert np.array_equal(getattr(back, name), getattr(rep, name)), name
+    assert back.ledger.as_dict() == rep.ledger.as_dict() and back.stopped_by == rep.stopped_by
+    assert back.choices == rep.choices and back.rays == rep.rays
+    with pytest.raises(ValueError, match="radiosity"):
+        Replica.from_arrays(rep.to_arrays() | {"radiosity": rep.radiosity[:-1]}, len(patches))
+    patches.reset()
+    shares = LocalShares(patches, SolverConfig(accuracy=ACCURACY), tracer)
+    tally = shares.direct([np.flatnonzero(patches.rho.any(axis=1))[:50]])[0]
+    again = tally_from_arrays(tally_to_arrays(tally), len(patches))
+    assert np.array_equal(again.received, tally.received) and np.array_equal(again.hit, tally.hit)
+    assert again.rays == tally.rays
+    with pytest.raises(ValueError, match="outside"):
+        tally_from_arrays(tally_to_arrays(tally) | {"hit": tally.hit + len(patches)}, len(patches))
+    with pytest.raises(ValueError, match="shape"):
+        Shot.from_arrays({"shot_radiosity": np.zeros((3, 3)), "shot_diff": np.zeros((3, 3)),
+                          "shot_direct": np.zeros((3, 3)), "shot_direct_a": np.zeros((2, 3))}, 3)
+
+
+def submit(address, folder, solver: dict, divide: dict | None = None):
+    def requests():
+        yield pb.SubmitRequest(spec=pb.JobSpec(scene="office.obj", solver=pb.SolverSettings(**solver),
+                                               divide=pb.DivideSettings(**(divide or {}))))
+        for path in folder.iterdir():
+            for c in file_chunks(path.read_bytes(), path.name):
+                yield pb.SubmitRequest(file=c)
+
+    with grpc.insecure_channel(address) as ch:
+        return pb_grpc.CoordinatorStub(ch).Submit(requests(), timeout=60)
+
+
+def watch(address, job_id, on_progress=None):
+    out = []
+    with grpc.insecure_channel(address) as ch:
+        for p in pb_grpc.CoordinatorStub(ch).Watch(pb.JobRef(job_id=job_id), timeout=600):
+            out.append(p)
+            if on_progress:
+                on_progress(p)
+    return out
+
+
+def fetch(address, job_id) -> dict:
+    files: dict[str, bytearray] = {}
+    with grpc.insecure_channel(address) as ch:
+        for c in pb_grpc.CoordinatorStub(ch).Fetch(pb.JobRef(job_id=job_id), timeout=120):
+            files.setdefault(c.path, bytearray()).extend(c.data)
+    return files
+
+
+def in_process(table, k: int, seed: int):
+    patches, tracer = table
+    patches.reset()
+    cfg = SolverConfig(accuracy=ACCURACY, seed=seed)
+    run = run_shared(patches, cfg, k, LocalShares(patches, cfg, tracer))
+    return run, patches.radiosity.copy()
+
+
+def test_two_workers_share_a_job_bit_identically(office, table, tmp_path):
+    """An accuracy job with the subscenes left to the coordinator runs shared on both workers:
+    the same B as the in-process shares, to the bit; the report says how it ran."""
+    run, b_ref = in_process(table, 2, seed=3)
+    with LocalCluster(workers=2, data=tmp_path) as cluster:
+        job = submit(cluster.address, office, {"accuracy": ACCURACY, "seed": 3})
+        progress = watch(cluster.address, job.job_id)
+        files = fetch(cluster.address, job.job_id)
+    final = progress[-1]
+    assert final.job.state == "done", final.job.error
+    assert len(set(final.job.workers)) == 2
+    b = np.load(io.BytesIO(bytes(files["radiosity.npz"])))["patch_B"]
+    assert np.array_equal(b, b_ref)
+    report = json.loads(bytes(files["report.json"]))
+    assert report["shared"]["workers"] == 2 and report["divided"] is None
+    assert report["stats"]["rays"] == run.stats.rays
+    assert report["ledger"]["closure"] < 1e-10
+    assert any(c.startswith("shared run on 2 workers") for c in report["choices"])
+    # the status page's barriers: direct, shoot, each gather round
+    assert [p.barrier for p in progress if p.job.state == "running"][-1] == 2 + len(run.rounds)
+
+
+def test_a_killed_worker_s_share_runs_elsewhere_with_the_same_result(office, table, tmp_path):
+    """Three workers registered, one killed before the job: the coordinator still counts it, gives it a
+    share of every phase, finds it gone at the first call and runs that share on a survivor (with
+    the patch table sent again where needed).  The result is the undisturbed 3-share run's, to the bit."""
+    _, b_ref = in_process(table, 3, seed=4)
+    with LocalCluster(workers=3, data=tmp_path) as cluster:
+        cluster.kill_worker(0)
+        job = submit(cluster.address, office, {"accuracy": ACCURACY, "seed": 4})
+        progress = watch(cluster.address, job.job_id)
+        files = fetch(cluster.address, job.job_id)
+    final = progress[-1]
+    assert final.job.state == "done", final.job.error
+    report = json.loads(bytes(files["report.json"]))
+    assert report["shared"]["workers"] == 3 and report["shared"]["reassigned"] >= 1
+    assert len(report["shared"]["workers_used"]) == 2
+    b = np.load(io.BytesIO(bytes(files["radiosity.npz"])))["patch_B"]
+    assert np.array_equal(b, b_ref)
+
+
+def test_explicit_subscenes_divide_instead(office, tmp_path):
+    """--subscenes given: the job divides space as asked, no shared run."""
+    with LocalCluster(workers=2, data=tmp_path) as cluster:
+        job = submit(cluster.address, office, {"accuracy": 0.1, "seed": 3}, {"subscenes": 2})
+        progress = watch(cluster.address, job.job_id)
+        files = fetch(cluster.address, job.job_id)
+    assert progress[-1].job.state == "done", progress[-1].job.error
+    report = json.loads(bytes(files["report.json"]))
+    assert report.get("shared") is None and report["divided"]["subscenes"] == 2
