@@ -695,8 +695,8 @@ class JobManager:
         last.shots = run.stats.shots
         timings["solve_s"] = run.stats.wall_seconds
         where = f"{len(shares.used)} worker process(es): {', '.join(sorted(shares.used))}"
-        books = shared_books(run, patches, config, timings, where=where)
-        shared = books.shared | {"workers_used": sorted(shares.used), "reassigned": shares.reassigned,
+        books, shared = shared_books(run, patches, config, timings, where=where)
+        shared |= {"workers_used": sorted(shares.used), "reassigned": shares.reassigned,
                                  "bytes_sent": shares.bytes_sent}
         job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
         job.preview.render(patches.radiosity, len(phases))

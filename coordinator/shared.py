@@ -122,7 +122,7 @@ class RemoteShares:
             def watch():
                 while not stop.wait(0.2):
                     if should_stop():
-                        self.cancel()
+                        self.stop()
                         return
             watcher = threading.Thread(target=watch, name=f"share-stop-{self.job_id}", daemon=True)
             watcher.start()
@@ -137,9 +137,19 @@ class RemoteShares:
         inputs = shot.to_arrays() | {"rounds": np.asarray(rounds, np.int64)}
         out = self._all("gather", [inputs | {"rows": np.asarray(r, np.int64)} for r in shares])
         for a, rows in zip(out, shares):
-            if np.shape(a.get("sum_a")) != (len(rows), 3) or np.shape(a.get("sum_b")) != (len(rows), 3):
+            if any(name not in a or np.shape(a[name]) != (len(rows), 3) for name in ("sum_a", "sum_b")):
                 raise DcradError("a worker's gather share does not match its receivers")
         return [(a["sum_a"], a["sum_b"], int(a["traced"][0])) for a in out]
+
+    def stop(self) -> None:
+        """Ask every worker holding the job to end its replica cleanly (it returns what it has)."""
+        header = pb.ShareHeader(job_id=self.job_id, phase="stop")
+        for w in self.pool.live():
+            try:
+                for _ in w.stub().Share(iter([pb.ShareRequest(header=header)]), timeout=10):
+                    pass
+            except grpc.RpcError as exc:
+                log.info("job %s: stop request to %s failed (%s)", self.job_id, w.address, exc.code().name)
 
     def cancel(self) -> None:
         """Cancel every call in flight (the job was cancelled)."""

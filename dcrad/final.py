@@ -117,6 +117,8 @@ class FinalGather:
 
     def add(self, rays: int, rng: np.random.Generator) -> int:
         """Trace ``rays`` (even) more rays per receiver into the sums; return the rays traced."""
+        if self.tracer is None:
+            raise ValueError("a FinalGather without a tracer only combines sums (solution)")
         p, rec = self.patches, self.rec
         half = max(rays // 2, 1)
         refl = self.radiosity - p.emission

@@ -347,10 +347,13 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     snapshot_B = [emission, b_direct, patches.radiosity.copy()]
     # the final gather of the average, split by receivers, topped up as Solver.finish does
     # the job's plan (the replicas' is at 1/k of the density): the gather is not split by rays
-    first = final_plan(cfg, len(patches)).final_rays if any(r.final_rays for r in replicas) else 0
+    plan = final_plan(cfg, len(patches))
+    first = plan.final_rays if plan is not None and any(r.final_rays for r in replicas) else 0
     rounds: list[int] = []
     gather_rays = 0
     stopped = _stopped_by(replicas)
+    if not stopped and should_stop is not None and should_stop():
+        stopped = "stopped"
     t1 = time.perf_counter()
     if first >= 2 and stopped == "" and patches.rho.any():
         fg = FinalGather(patches, None, shot.diff, shot.direct, shot.direct_a, cfg.batch_rays)
@@ -405,11 +408,12 @@ def _stopped_by(replicas: list[Replica]) -> str:
 
 
 def shared_books(run: SharedRun, patches: Patches, config: SolverConfig, timings: dict | None = None,
-                 where: str = "in this process") -> RunBooks:
-    """The books of a shared run for its report (``pipeline.finish_run``)."""
+                 where: str = "in this process") -> tuple[RunBooks, dict]:
+    """The books of a shared run for its report (``pipeline.finish_run``) and the report's
+    ``shared`` section."""
     cfg = resolve(config, len(patches))
     rep = run.replicas
-    back = sum(r.back_by_obj for r in rep) / len(rep)
+    back = np.sum([r.back_by_obj for r in rep], axis=0) / len(rep)
     stiff = next((r.stiff for r in rep if r.stiff is not None), None)
     choices = list(run.choices)
     s = run.seconds
@@ -433,8 +437,7 @@ def shared_books(run: SharedRun, patches: Patches, config: SolverConfig, timings
     books = RunBooks(patches, cfg, run.ledger, run.stats, list(run.snapshots), list(run.snapshot_B), back,
                      choices, dict(timings or {}), None, estimate=run.estimate,
                      channels=1 if patches.is_grey and len(patches) else 3, stiff=stiff)
-    books.shared = shared  # type: ignore[attr-defined]
-    return books
+    return books, shared
 
 
 # == the wire form of shares (coordinator.shared and worker.server) ==============================

@@ -657,7 +657,9 @@ class Solver:
         self.pool.invalidate()  # the table may have changed since the last run
         self.recount()
         self.snapshot(force=True)
-        if self.config.direct and not self.gathered and not (should_stop is not None and should_stop()):
+        # a preset gather (a shared run's) is booked even when stopping: it is done, and cheap to book
+        if self.config.direct and not self.gathered and (self.preset_direct is not None
+                                                         or not (should_stop is not None and should_stop())):
             self.gather()
             self.snapshot()
             if on_progress is not None:

@@ -207,6 +207,27 @@ def test_a_killed_worker_s_share_runs_elsewhere_with_the_same_result(office, tab
     assert np.array_equal(b, b_ref)
 
 
+def test_a_cancelled_shared_job_ends_with_what_it_has(office, tmp_path):
+    """Cancelled once the direct light is in: the replicas stop cleanly, the job ends cancelled
+    with its results written (the books closed), as a divided job does."""
+    with LocalCluster(workers=2, data=tmp_path) as cluster:
+        job = submit(cluster.address, office, {"accuracy": 0.003, "seed": 4})
+        sent: list[bool] = []
+
+        def on_progress(pr):
+            if pr.barrier == 1 and not sent:
+                with grpc.insecure_channel(cluster.address) as ch:
+                    pb_grpc.CoordinatorStub(ch).Cancel(pb.JobRef(job_id=job.job_id), timeout=10)
+                sent.append(True)
+
+        progress = watch(cluster.address, job.job_id, on_progress)
+        files = fetch(cluster.address, job.job_id)
+    assert sent and progress[-1].job.state == "cancelled", progress[-1].job.error
+    report = json.loads(bytes(files["report.json"]))
+    assert report["stats"]["stopped_by"] == "stopped" and report["shared"]["gather_rounds"] == []
+    assert report["ledger"]["closure"] < 1e-10
+
+
 def test_explicit_subscenes_divide_instead(office, tmp_path):
     """--subscenes given: the job divides space as asked, no shared run."""
     with LocalCluster(workers=2, data=tmp_path) as cluster:

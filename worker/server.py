@@ -75,6 +75,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         self.scene_locks: dict[str, asyncio.Lock] = {}
         #: shared runs' final gathers by (job id, share index), continued round by round
         self.gathers: dict[tuple[str, int], object] = {}
+        #: shared runs asked to stop (phase "stop"): their replicas end cleanly with what they have
+        self.stops: dict[str, threading.Event] = {}
 
     def _get(self, key: pb.SubsceneKey, context):
         k = (key.job_id, key.cell)
@@ -148,6 +150,10 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         if header is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Share needs a header first")
         job = header.job_id
+        stop = self.stops.setdefault(job, threading.Event())
+        if header.phase == "stop":
+            stop.set()
+            return
         try:
             arrays = asm.result()
             config = from_pb(SolverConfig, header.solver)
@@ -186,7 +192,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                     tally = tally_from_arrays({k[len("tally_"):]: v for k, v in arrays.items()
                                                if k.startswith("tally_")}, len(patches))
                     rep = await asyncio.to_thread(run_replica, patches, config, tracer, tally, header.index,
-                                                  header.count, cancelled.is_set)
+                                                  header.count, lambda: cancelled.is_set() or stop.is_set())
                     out = rep.to_arrays()
             except (DcradError, KeyError, TypeError, ValueError) as exc:
                 await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run share: {exc}")
@@ -199,6 +205,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         if request.cell < 0:  # a shared run's patch table
             self.scenes.pop(request.job_id, None)
             self.scene_locks.pop(request.job_id, None)
+            self.stops.pop(request.job_id, None)
             for key in [key for key in self.gathers if key[0] == request.job_id]:
                 del self.gathers[key]
             return pb.Empty()
