@@ -3,7 +3,9 @@
 Each share is one ``Share`` call: the header, the patch table the first time a
 worker serves the job (it keeps it, with its Embree scene, until ``drop``), and
 the phase's input; the reply streams the result arrays.  The shares of a phase
-run at once, one thread each, on the least loaded live workers.  A share is a
+run at once, one thread each, on the least loaded live workers; a share index
+stays on its worker from phase to phase (its pilot, its final gather's rounds are
+held there).  A share is a
 pure function of its inputs, so one whose worker is lost (``remote.LOST``) runs
 again on another live worker with the same result; a worker that lost the patch
 table (restarted) gets it again.  A stop request cancels the calls in flight.
@@ -42,6 +44,7 @@ class RemoteShares:
         self.settings = to_pb(config, pb.SolverSettings)
         self.loaded: set[str] = set()  #: addresses holding the patch table
         self.used: set[str] = set()  #: addresses that served a share
+        self.placed: dict[int, WorkerEntry] = {}  #: the worker of each share index (kept while alive)
         self.reassigned = 0  #: shares run again after their worker was lost
         self.bytes_sent = 0
         self._calls: list = []
@@ -64,10 +67,13 @@ class RemoteShares:
         while True:
             if self.cancelled:
                 raise Cancelled("cancelled")
-            try:
-                w: WorkerEntry = self.pool.pick(exclude)
-            except NoWorkers:
-                raise NoWorkers(f"no live worker can take {phase} share {index} of {count}") from None
+            w: WorkerEntry | None = self.placed.get(index)
+            if w is None or w.address in exclude or not self.pool.take(w):
+                try:
+                    w = self.pool.pick(exclude)
+                except NoWorkers:
+                    raise NoWorkers(f"no live worker can take {phase} share {index} of {count}") from None
+            self.placed[index] = w  # the same worker for the share's next phase (its pilot, its gather)
             try:
                 for attempt in range(2):
                     with_scene = w.address not in self.loaded
@@ -111,7 +117,15 @@ class RemoteShares:
             return [f.result() for f in futures]
 
     def direct(self, shares: list[np.ndarray]):
-        out = self._all("direct", [{"rows": np.asarray(r, np.int64)} for r in shares])
+        """Each share's pilot, then its gather at the shared rate (``direct.shared_rate``): the pilot
+        stays on its worker in between; a worker that lost it pilots again (same stream, same light)."""
+        rows = [{"rows": np.asarray(r, np.int64)} for r in shares]
+        pilots = self._all("pilot", rows)
+        if any(not a for a in pilots):
+            return [None] * len(shares)
+        need, weight = (sum(float(a["pilot"][i]) for a in pilots) for i in (0, 1))
+        rate = need / weight if weight > 0 else 0.0
+        out = self._all("direct", [r | {"rate": np.array([rate])} for r in rows])
         return [tally_from_arrays(a, len(self.patches)) if a else None for a in out]
 
     def replicas(self, direct, k: int, should_stop=None) -> list[Replica]:

@@ -39,7 +39,8 @@ def _solver_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help="local worker processes with an embedded coordinator (0: solve in this process; "
                         "default: 2 for scenes of 150k patches or more on 2+ CPUs, else 0)")
-    add_divide_flags(p, "split into k subscenes (default: two per worker; 1: no partition, no twins)")
+    add_divide_flags(p, "split into k subscenes (default: the coordinator chooses: a shared run of the whole "
+                        "scene where the light is gathered, else two per worker; 1: no partition, no twins)")
     p.add_argument("--planes", default="", help="explicit partition planes, e.g. x=4.06,z=4.06 (each splits "
                                                 "every cell it crosses; overrides --subscenes)")
 

@@ -63,8 +63,9 @@ from .sampling import kronecker_alpha, lattice, triangle_points
 from .shoot import Tally
 
 __all__ = ["DirectTally", "gather_direct", "shadow_rays_for", "noise_against_shooting", "landing_rays",
-           "rescale_to_landed", "merge", "PILOT_SHARE", "GATHER_MARGIN", "gather_analytic", "light_pairs",
-           "pair_form_factors", "MAX_PAIRS", "MAX_ANALYTIC_RECEIVERS", "analytic_lights", "light_lists",
+           "rescale_to_landed", "merge", "AnalyticGather", "shared_rate", "PILOT_SHARE", "GATHER_MARGIN",
+           "gather_analytic", "light_pairs", "pair_form_factors", "MAX_PAIRS", "MAX_ANALYTIC_RECEIVERS",
+           "analytic_lights", "light_lists",
            "LightLists", "FAR_BOUND"]
 
 #: share of the receivers (at random) gathered first to decide whether gathering beats shooting
@@ -780,85 +781,130 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
     near a penumbra, or near no probed pair, in proportion to E_L F_iL.  Each half
     has its own points and rays, so the noise estimate sees its noise.
     """
-    if receivers is None:
-        receivers = np.flatnonzero(patches.rho.any(axis=1))
-    lists = _lists_for(patches, lights, receivers)
-    if len(lists.cell) == 0 or float(power.sum()) <= 0:
-        return gather_direct(patches, tracer, emitters, power, shadow_rays, rng, offset, batch_rays,
-                             np.zeros(0, np.int64))
-    k = len(receivers)
-    halves = np.zeros((2, k, 3))
-    # receivers in runs of whole cells (cell order: slabs of the scene) of about CHUNK_PAIRS
-    # expected pair entries each: bounded memory at any size.  Two passes: the pilot on every
-    # run (its findings kept as (cell, light) sets of the whole scene, so a run's edge sees the
-    # next run's probes), then the gather; each run's pairs drawn twice from its own seed
-    n = lists.count[lists.cell].astype(np.float64)
-    per_cell = np.bincount(lists.cell, weights=np.where(lists.q >= 1.0, n, 2.0 * n * lists.q),
-                           minlength=len(lists.count))
-    ends = np.cumsum(per_cell)
-    runs = []
-    c0 = 0
-    while c0 < len(lists.count):
-        c1 = max(int(np.searchsorted(ends, (ends[c0 - 1] if c0 else 0.0) + CHUNK_PAIRS, side="right")), c0 + 1)
-        runs.append((c0, c1))
-        c0 = c1
-    seeds = rng.integers(0, 2**63 - 1, size=len(runs))
-    grid = _ProbeGrid(patches, receivers, len(lights))
-    grid.start(3)
-    rays = 0
-    # per (cell, light) code: the weight E F / q (F at the centroid) and the present halves, to
-    # share the budget over the whole scene at one rate of rays per weight (per run it would
-    # be a small difference of large numbers: pilot and one ray a half take most of it)
-    tallies: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    for (c0, c1), seed in zip(runs, seeds):
-        slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
-                                                  cells=(c0, c1))
-        rec = receivers[slot]
-        f0 = _pair_form_factors(patches, lights, rec, light, None)[:, 0]
-        mine, at = np.unique(grid.code(grid.cells(rec), light), return_inverse=True)
-        w0 = lights.exitance[light].sum(axis=1) * f0 * inv_q
-        tallies.append((mine, np.bincount(at, weights=w0, minlength=len(mine)),
-                        np.bincount(at, weights=present.sum(axis=1), minlength=len(mine))))
-        del mine, at, w0, present, inv_q
-        probe = np.flatnonzero((f0 > 0) & (rng.random(len(slot)) < PILOT_PAIRS))
-        _, _, vis, traced = _visibility(patches, tracer, lights, emitters, rec[probe], light[probe],
-                                        np.full(len(probe), PILOT_RAYS, np.int64), rng, offset,
-                                        min(batch_rays, VIS_BATCH))
-        rays += PILOT_RAYS * len(probe)
-        codes = grid.code(grid.cells(rec[probe]), light[probe])
-        for j, flag in enumerate(((vis > 0) & (vis < traced), vis > 0, np.ones(len(probe), bool))):
-            if flag.any():
-                grid.mark(j, codes[flag])
-        del slot, light, rec, f0, probe, vis, traced, codes
-    grid.finish()
-    codes = np.concatenate([t[0] for t in tallies])
-    uc, at = np.unique(codes, return_inverse=True)
-    w_code = np.bincount(at, weights=np.concatenate([t[1] for t in tallies]), minlength=len(uc))
-    h_code = np.bincount(at, weights=np.concatenate([t[2] for t in tallies]), minlength=len(uc))
-    del tallies, codes, at
-    mixed, lit, known = (grid.near(j, uc) for j in range(3))
-    dark = known & ~mixed & ~lit
-    marked = ~dark & (mixed | ~known)
-    one_each = float(np.where(dark, DARK_KEEP * h_code, np.where(w_code > 0, h_code, 0.0)).sum())
-    budget = max(shadow_rays * k - rays - one_each, 0.0)
-    rate = budget / float(w_code[marked].sum()) if marked.any() and w_code[marked].sum() > 0 else 0.0
-    for (c0, c1), seed in zip(runs, seeds):
-        slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
-                                                  cells=(c0, c1))
-        if len(slot) == 0:
-            continue
-        rays += _gather_pairs(patches, tracer, lights, emitters, receivers, slot, light, present, inv_q,
-                              rate, rng, offset, batch_rays, halves, grid)
-    lights.cache.pop("lists", None)
-    received = 0.5 * (halves[0] + halves[1])
-    keep = np.flatnonzero(received.any(axis=1))
-    got = received[keep]
-    escaped = power.sum(axis=0) - got.sum(axis=0)
-    magnitude = np.abs(got)
-    return DirectTally(got, receivers[keep], escaped, np.zeros(3), np.zeros(patches.n_objects),
-                       np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
-                       (magnitude * patches.rho[receivers[keep]]).sum(axis=0), np.abs(escaped),
-                       0.5 * halves[0][keep], rays)
+    gather = AnalyticGather(patches, tracer, emitters, power, lights, shadow_rays, rng, offset, batch_rays,
+                            receivers)
+    return gather.finish()
+
+
+class AnalyticGather:
+    """``gather_analytic`` in its two passes: the pilot (at construction) and the gather (``finish``).
+
+    Between them, ``need`` (the shadow rays left for the pairs near a penumbra) and ``weight``
+    (their total E F / q) set the rate of rays per weight, ``need / weight``.  A shared run
+    (share.py) pilots its shares of the receivers apart and gathers them all at one rate, the
+    sums' over every share (``shared_rate``), as one gather of every receiver would: at a rate
+    of its own, a share with more penumbrae than the others gets fewer rays there (the office
+    3x3 split in two: 24% more noise in the direct light).
+    """
+
+    def __init__(self, patches: Patches, tracer: Tracer, emitters: np.ndarray, power: np.ndarray,
+                 lights: Lights, shadow_rays: int, rng: np.random.Generator, offset: float,
+                 batch_rays: int = 262144, receivers: np.ndarray | None = None):
+        self.need, self.weight = 0.0, 0.0
+        self.empty: DirectTally | None = None  #: the result when there is nothing to gather (no pairs)
+        if receivers is None:
+            receivers = np.flatnonzero(patches.rho.any(axis=1))
+        lists = _lists_for(patches, lights, receivers)
+        if len(lists.cell) == 0 or float(power.sum()) <= 0:
+            self.empty = gather_direct(patches, tracer, emitters, power, shadow_rays, rng, offset, batch_rays,
+                                       np.zeros(0, np.int64))
+            return
+        k = len(receivers)
+        halves = np.zeros((2, k, 3))
+        # receivers in runs of whole cells (cell order: slabs of the scene) of about CHUNK_PAIRS
+        # expected pair entries each: bounded memory at any size.  Two passes: the pilot on every
+        # run (its findings kept as (cell, light) sets of the whole scene, so a run's edge sees the
+        # next run's probes), then the gather; each run's pairs drawn twice from its own seed
+        n = lists.count[lists.cell].astype(np.float64)
+        per_cell = np.bincount(lists.cell, weights=np.where(lists.q >= 1.0, n, 2.0 * n * lists.q),
+                               minlength=len(lists.count))
+        ends = np.cumsum(per_cell)
+        runs = []
+        c0 = 0
+        while c0 < len(lists.count):
+            c1 = max(int(np.searchsorted(ends, (ends[c0 - 1] if c0 else 0.0) + CHUNK_PAIRS, side="right")), c0 + 1)
+            runs.append((c0, c1))
+            c0 = c1
+        seeds = rng.integers(0, 2**63 - 1, size=len(runs))
+        grid = _ProbeGrid(patches, receivers, len(lights))
+        grid.start(3)
+        rays = 0
+        # per (cell, light) code: the weight E F / q (F at the centroid) and the present halves, to
+        # share the budget over the whole scene at one rate of rays per weight (per run it would
+        # be a small difference of large numbers: pilot and one ray a half take most of it)
+        tallies: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        for (c0, c1), seed in zip(runs, seeds):
+            slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
+                                                      cells=(c0, c1))
+            rec = receivers[slot]
+            f0 = _pair_form_factors(patches, lights, rec, light, None)[:, 0]
+            mine, at = np.unique(grid.code(grid.cells(rec), light), return_inverse=True)
+            w0 = lights.exitance[light].sum(axis=1) * f0 * inv_q
+            tallies.append((mine, np.bincount(at, weights=w0, minlength=len(mine)),
+                            np.bincount(at, weights=present.sum(axis=1), minlength=len(mine))))
+            del mine, at, w0, present, inv_q
+            probe = np.flatnonzero((f0 > 0) & (rng.random(len(slot)) < PILOT_PAIRS))
+            _, _, vis, traced = _visibility(patches, tracer, lights, emitters, rec[probe], light[probe],
+                                            np.full(len(probe), PILOT_RAYS, np.int64), rng, offset,
+                                            min(batch_rays, VIS_BATCH))
+            rays += PILOT_RAYS * len(probe)
+            codes = grid.code(grid.cells(rec[probe]), light[probe])
+            for j, flag in enumerate(((vis > 0) & (vis < traced), vis > 0, np.ones(len(probe), bool))):
+                if flag.any():
+                    grid.mark(j, codes[flag])
+            del slot, light, rec, f0, probe, vis, traced, codes
+        grid.finish()
+        codes = np.concatenate([t[0] for t in tallies])
+        uc, at = np.unique(codes, return_inverse=True)
+        w_code = np.bincount(at, weights=np.concatenate([t[1] for t in tallies]), minlength=len(uc))
+        h_code = np.bincount(at, weights=np.concatenate([t[2] for t in tallies]), minlength=len(uc))
+        del tallies, codes, at
+        mixed, lit, known = (grid.near(j, uc) for j in range(3))
+        dark = known & ~mixed & ~lit
+        marked = ~dark & (mixed | ~known)
+        one_each = float(np.where(dark, DARK_KEEP * h_code, np.where(w_code > 0, h_code, 0.0)).sum())
+        self.need = max(shadow_rays * k - rays - one_each, 0.0)
+        self.weight = float(w_code[marked].sum()) if marked.any() else 0.0
+        self.patches, self.tracer, self.emitters, self.power, self.lights = patches, tracer, emitters, power, lights
+        self.rng, self.offset, self.batch_rays, self.receivers = rng, offset, batch_rays, receivers
+        self.lists, self.runs, self.seeds, self.grid, self.halves, self.rays = lists, runs, seeds, grid, halves, rays
+
+    @property
+    def rate(self) -> float:
+        """Its own rate of extra rays per unit weight (``need / weight``)."""
+        return self.need / self.weight if self.weight > 0 else 0.0
+
+    def finish(self, rate: float | None = None) -> DirectTally:
+        """The gather pass at ``rate`` (None: its own) and the tally."""
+        if self.empty is not None:
+            return self.empty
+        rate = self.rate if rate is None else rate
+        patches, tracer, emitters, power, lights = self.patches, self.tracer, self.emitters, self.power, self.lights
+        rng, offset, batch_rays, receivers = self.rng, self.offset, self.batch_rays, self.receivers
+        lists, runs, seeds, grid, halves, rays = self.lists, self.runs, self.seeds, self.grid, self.halves, self.rays
+        for (c0, c1), seed in zip(runs, seeds):
+            slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
+                                                      cells=(c0, c1))
+            if len(slot) == 0:
+                continue
+            rays += _gather_pairs(patches, tracer, lights, emitters, receivers, slot, light, present, inv_q,
+                                  rate, rng, offset, batch_rays, halves, grid)
+        lights.cache.pop("lists", None)
+        received = 0.5 * (halves[0] + halves[1])
+        keep = np.flatnonzero(received.any(axis=1))
+        got = received[keep]
+        escaped = power.sum(axis=0) - got.sum(axis=0)
+        magnitude = np.abs(got)
+        return DirectTally(got, receivers[keep], escaped, np.zeros(3), np.zeros(patches.n_objects),
+                           np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
+                           (magnitude * patches.rho[receivers[keep]]).sum(axis=0), np.abs(escaped),
+                           0.5 * halves[0][keep], rays)
+
+
+def shared_rate(parts: list[AnalyticGather]) -> float:
+    """One rate for the pilots of several shares of the receivers: their rays left over their weight."""
+    weight = sum(g.weight for g in parts)
+    return sum(g.need for g in parts) / weight if weight > 0 else 0.0
 
 
 #: shadow rays traced at once by the analytic gather (about 0.5 KB a ray in ``_visibility``)
@@ -913,17 +959,19 @@ def _gather_pairs(patches: Patches, tracer: Tracer, lights: Lights, emitters: np
     return int(counts.sum())
 
 
-def analytic_lights(patches: Patches, emitters: np.ndarray, power: np.ndarray, receivers: int) -> Lights | None:
+def analytic_lights(patches: Patches, emitters: np.ndarray, power: np.ndarray, receivers: int,
+                    rows: np.ndarray | None = None) -> Lights | None:
     """The lights for ``gather_analytic``, or None when the sampled gather is to be used (too many
     outline vertices, more than MAX_ANALYTIC_RECEIVERS receivers, or more than MAX_PAIRS expected
     pair entries per receiver from the receivers' light lists, ``light_lists``).  ``receivers``:
-    the receiving patches' count (the receivers are the patches with a reflectance)."""
+    the receiving patches' count (the receivers are the patches with a reflectance); ``rows``: the
+    receivers whose lists decide (None: all; a shared run's share, whose gather then reuses them)."""
     if receivers > MAX_ANALYTIC_RECEIVERS:
         return None
     lights = light_polygons(patches, emitters, power)
     if lights is None:
         return None
-    rows = np.flatnonzero(patches.rho.any(axis=1))
+    rows = np.flatnonzero(patches.rho.any(axis=1)) if rows is None else rows
     if len(rows) and _lists_for(patches, lights, rows).expected_pairs() > MAX_PAIRS * len(rows):
         return None
     return lights

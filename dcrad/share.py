@@ -9,8 +9,10 @@ bench/RESULTS.md).  A shared run keeps it and divides the work instead:
 
 1. **direct**: the receivers are split into k runs along a Morton curve
    (``receiver_shares``); worker i gathers the exact direct light of run i
-   (``Solver.direct_share``: the cost is per receiver-light pair, not per ray, so
-   splitting receivers is what divides it).  The k tallies are merged
+   (``Solver.direct_pilot``: the cost is per receiver-light pair, not per ray, so
+   splitting receivers is what divides it), its pilot first; the shadow rays left
+   after the pilots go to every share's penumbrae at one rate (``direct.shared_rate``),
+   as in one gather of every receiver.  The k tallies are merged
    (``direct.merge``): the direct light of every receiver, gathered once.
 2. **shoot**: every worker runs an independent replica ``Solver`` over the whole
    scene from that direct light (``run_replica``), with its own random streams:
@@ -46,7 +48,7 @@ import numpy as np
 
 from .accuracy import by_accuracy, final_plan, resolve
 from .config import SolverConfig
-from .direct import MAX_ANALYTIC_RECEIVERS, DirectTally, merge
+from .direct import MAX_ANALYTIC_RECEIVERS, AnalyticGather, DirectTally, merge, shared_rate
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .final import FinalGather
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
@@ -56,7 +58,8 @@ from .report import RunBooks
 from .shooters import spatial_order
 from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, top_up
 
-__all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "run_replica", "Replica",
+__all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
+           "Replica",
            "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books", "tally_to_arrays",
            "tally_from_arrays", "patches_to_arrays", "patches_from_arrays", "shared_noise", "REPLICA_SEED"]
 #: replica i seeds its random streams this much after replica i - 1 (passes.PASS_SEED's role)
@@ -85,12 +88,15 @@ def receiver_shares(patches: Patches, k: int) -> list[np.ndarray]:
 
 def replica_config(config: SolverConfig, k: int, index: int, patches: int) -> SolverConfig:
     """Replica ``index`` of k over ``patches`` patches: the job's target, 1/k of its ray density
-    and of its ray budget, its own seed."""
+    and of its ray budget, k x its shooters a batch, its own seed."""
     cfg = resolve(config, patches)
     if k <= 1:
         return cfg
+    # k x the shooters a batch: a replica's shots carry 1/k of the rays, so its batches keep the
+    # job's rays a batch (office 8x8: 157 batches of 36k rays each at the job's cap)
     return cfg.replace(rays_per_power=cfg.rays_per_power / k, seed=cfg.seed + REPLICA_SEED * (index + 1),
-                       max_rays=int(math.ceil(cfg.max_rays / k)) if cfg.max_rays else 0)
+                       max_rays=int(math.ceil(cfg.max_rays / k)) if cfg.max_rays else 0,
+                       max_shooters=cfg.max_shooters * k)
 
 
 def shared_noise(patches: Patches, direct: DirectTally) -> float:
@@ -101,13 +107,23 @@ def shared_noise(patches: Patches, direct: DirectTally) -> float:
     return float((patches.area[hit] * (d * d).mean(axis=1)).sum()) / max(float(patches.total_area), 1e-300) / 4.0
 
 
-def direct_share(patches: Patches, config: SolverConfig, tracer: Tracer, rows: np.ndarray,
-                 index: int) -> DirectTally | None:
-    """Share ``index``'s exact direct gather over ``rows`` (None: the lights make no exact
-    polygons, or there is no final plan; see ``Solver.direct_share``)."""
+def direct_pilot(patches: Patches, config: SolverConfig, tracer: Tracer, rows: np.ndarray,
+                 index: int) -> AnalyticGather | None:
+    """Share ``index``'s exact direct gather over ``rows``, after its pilot (its ``need`` and
+    ``weight`` set the shared rate, ``direct.shared_rate``); None: the lights make no exact
+    polygons, or there is no final plan (``Solver.direct_pilot``).  Its random stream is
+    (seed, DIRECT_STREAM, index), so a share piloted again gathers the same light."""
     solver = Solver(patches, config, tracer=tracer)
     rng = np.random.default_rng([solver.config.seed, DIRECT_STREAM, index])
-    return solver.direct_share(np.asarray(rows, np.int64), rng)
+    return solver.direct_pilot(np.asarray(rows, np.int64), rng)
+
+
+def direct_share(patches: Patches, config: SolverConfig, tracer: Tracer, rows: np.ndarray, index: int,
+                 rate: float, held: AnalyticGather | None = None) -> DirectTally | None:
+    """Share ``index``'s exact direct gather over ``rows`` at the shared ``rate``; ``held``: its pilot
+    (None: piloted here first)."""
+    pilot = held if held is not None else direct_pilot(patches, config, tracer, rows, index)
+    return None if pilot is None else pilot.finish(rate)
 
 
 @dataclass
@@ -288,7 +304,11 @@ class LocalShares:
         self.held: dict[int, FinalGather] = {}  #: each share's final gather so far
 
     def direct(self, shares: list[np.ndarray]) -> list[DirectTally | None]:
-        return [direct_share(self.patches, self.config, self.tracer, rows, i) for i, rows in enumerate(shares)]
+        pilots = [direct_pilot(self.patches, self.config, self.tracer, rows, i) for i, rows in enumerate(shares)]
+        if any(g is None for g in pilots):
+            return [None] * len(shares)
+        rate = shared_rate([g for g in pilots if g is not None])
+        return [g.finish(rate) if g is not None else None for g in pilots]
 
     def replicas(self, direct: DirectTally, k: int, should_stop=None) -> list[Replica]:
         return [run_replica(self.patches, self.config, self.tracer, direct, i, k, should_stop) for i in range(k)]

@@ -58,6 +58,7 @@ from .direct import (
     GATHER_MARGIN,
     MAX_ANALYTIC_RECEIVERS,
     PILOT_SHARE,
+    AnalyticGather,
     DirectTally,
     analytic_lights,
     gather_analytic,
@@ -393,10 +394,12 @@ class Solver:
         self.commit(batch, tally)
         return self.counted(len(idx), len(batch))
 
-    def direct_inputs(self):
+    def direct_inputs(self, rows: np.ndarray | None = None):
         """What the direct gather works from: (emitters, their unshot radiosity, their power (W),
         shadow rays per receiver, the light polygons or None, the FinalPlan or None); None when
-        nothing emits.  Appends the report's line when the scene is too large for exact form factors."""
+        nothing emits.  Appends the report's line when the scene is too large for exact form factors.
+        ``rows``: the receivers whose light lists decide between exact and sampled gathers (None:
+        all; a shared run's share decides on its own, and its gather reuses the lists)."""
         p = self.patches
         cfg = self.config
         emitters = np.flatnonzero(p.emission.any(axis=1) & p.unshot.any(axis=1))
@@ -411,7 +414,7 @@ class Solver:
                 raise ValueError("a preset direct gather needs accuracy mode with the direct light gathered")
             return emitters, amounts, power, plan.shadow_rays, None, plan
         n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
-        lights = analytic_lights(p, emitters, power, n_receivers)
+        lights = analytic_lights(p, emitters, power, n_receivers, rows)
         if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
             self.choices.append(f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
                                 f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
@@ -420,21 +423,19 @@ class Solver:
             shadow = plan.shadow_rays
         return emitters, amounts, power, shadow, lights, plan
 
-    def direct_share(self, rows: np.ndarray, rng: np.random.Generator) -> DirectTally | None:
-        """The exact direct gather (``gather_analytic``) of the receivers ``rows`` only: one
-        worker's share of a shared run (share.py); None when the scene has no exact-form-factor
-        lights or no final plan (a shared run needs both)."""
-        got = self.direct_inputs()
+    def direct_pilot(self, rows: np.ndarray, rng: np.random.Generator) -> AnalyticGather | None:
+        """The exact direct gather of the receivers ``rows`` only, after its pilot pass
+        (``AnalyticGather``: ``finish(rate)`` gathers): one worker's share of a shared run
+        (share.py); None when the scene has no exact-form-factor lights or no final plan (a
+        shared run needs both)."""
+        got = self.direct_inputs(rows)
         if got is None:
             return None
         emitters, _, power, shadow, lights, plan = got
         if lights is None or plan is None:
             return None
-        t0 = time.perf_counter()
-        tally = gather_analytic(self.patches, self.tracer, emitters, power, lights, shadow, rng,
-                                ray_offset(self.patches), self.config.batch_rays, rows)
-        self.stats.trace_seconds += time.perf_counter() - t0
-        return tally
+        return AnalyticGather(self.patches, self.tracer, emitters, power, lights, shadow, rng,
+                              ray_offset(self.patches), self.config.batch_rays, rows)
 
     def gather(self) -> int:
         """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.

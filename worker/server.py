@@ -25,6 +25,7 @@ from dcrad.rays import Tracer
 from dcrad.settings import from_pb
 from dcrad.share import (
     Shot,
+    direct_pilot,
     direct_share,
     gather_share,
     patches_from_arrays,
@@ -75,6 +76,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         self.scene_locks: dict[str, asyncio.Lock] = {}
         #: shared runs' final gathers by (job id, share index), continued round by round
         self.gathers: dict[tuple[str, int], object] = {}
+        #: shared runs' direct shares after their pilot, by (job id, share index), until gathered
+        self.pilots: dict[tuple[str, int], object] = {}
         #: shared runs asked to stop (phase "stop"): their replicas end cleanly with what they have
         self.stops: dict[str, threading.Event] = {}
 
@@ -157,7 +160,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         try:
             arrays = asm.result()
             config = from_pb(SolverConfig, header.solver)
-            if header.phase not in ("direct", "replica", "gather") or not 0 <= header.index < max(header.count, 1):
+            phases = ("pilot", "direct", "replica", "gather")
+            if header.phase not in phases or not 0 <= header.index < max(header.count, 1):
                 raise ValueError(f"bad share: phase {header.phase!r}, index {header.index} of {header.count}")
             if header.scene:
                 table = {k[len("scene_"):]: v for k, v in arrays.items() if k.startswith("scene_")}
@@ -177,13 +181,23 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                 rows = np.asarray(arrays.get("rows", np.zeros(0)), np.int64)
                 if len(rows) and (rows.min() < 0 or rows.max() >= len(patches)):
                     raise ValueError(f"share rows outside 0..{len(patches) - 1}")
-                if header.phase == "direct":
-                    got = await asyncio.to_thread(direct_share, patches, config, tracer, rows, header.index)
+                key = (job, header.index)
+                if header.phase == "pilot":
+                    pilot = await asyncio.to_thread(direct_pilot, patches, config, tracer, rows, header.index)
+                    if pilot is not None:
+                        self.pilots[key] = pilot
+                    out = {} if pilot is None else {"pilot": np.array([pilot.need, pilot.weight])}
+                elif header.phase == "direct":
+                    rate = float(np.asarray(arrays["rate"]).ravel()[0])
+                    held = self.pilots.pop(key, None)
+                    if held is not None and not np.array_equal(held.receivers, rows):
+                        held = None
+                    got = await asyncio.to_thread(direct_share, patches, config, tracer, rows, header.index, rate,
+                                                  held)
                     out = {} if got is None else tally_to_arrays(got)
                 elif header.phase == "gather":
                     shot = Shot.from_arrays(arrays, len(patches))
                     rounds = [int(r) for r in arrays["rounds"]]
-                    key = (job, header.index)
                     fg, traced = await asyncio.to_thread(gather_share, patches, config, tracer, shot, rows,
                                                          header.index, rounds, self.gathers.get(key))
                     self.gathers[key] = fg
@@ -206,8 +220,9 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             self.scenes.pop(request.job_id, None)
             self.scene_locks.pop(request.job_id, None)
             self.stops.pop(request.job_id, None)
-            for key in [key for key in self.gathers if key[0] == request.job_id]:
-                del self.gathers[key]
+            for held in (self.gathers, self.pilots):
+                for key in [key for key in held if key[0] == request.job_id]:
+                    del held[key]
             return pb.Empty()
         k = (request.job_id, request.cell)
         self.subscenes.pop(k, None)
