@@ -332,8 +332,20 @@ class LightLists:
 
     def expected_pairs(self) -> float:
         """Expected pair entries (a near pair is one entry, a far one draws per half)."""
-        n = self.count[self.cell].astype(np.float64)
-        return float(np.where(self.q >= 1.0, n, 2.0 * n * self.q).sum())
+        return float(self.per_cell().sum())
+
+    def per_cell(self, step: int = 1 << 20) -> np.ndarray:
+        """(C,) expected pair entries of each cell, from runs of about ``step`` listed lights
+        cut at cells (each cell's sum in one piece: the same sums as all at once, without
+        three float64 copies of the whole list)."""
+        out = np.zeros(len(self.count))
+        cuts = np.searchsorted(self.cell, self.cell[::step], side="left")
+        cuts = np.unique(np.concatenate([cuts, [len(self.cell)]]))
+        for lo, hi in zip(cuts[:-1], cuts[1:]):
+            cell, q = self.cell[lo:hi], self.q[lo:hi]
+            n = self.count[cell].astype(np.float64)
+            out += np.bincount(cell, weights=np.where(q >= 1.0, n, 2.0 * n * q), minlength=len(self.count))
+        return out
 
 
 def light_lists(patches: Patches, lights: Lights, receivers: np.ndarray) -> LightLists:
@@ -433,7 +445,8 @@ def light_pairs(patches: Patches, lights: Lights, receivers: np.ndarray, rng: np
     ``cells``: only the receivers of cells c0 <= c < c1 (of ``lists``)."""
     if lists is None:
         lists = light_lists(patches, lights, receivers)
-    lo, hi = (0, len(lists.cell)) if cells is None else np.searchsorted(lists.cell, cells)
+    # (the bounds in the cells' own type: a Python int would make a 64-bit copy of the list)
+    lo, hi = (0, len(lists.cell)) if cells is None else np.searchsorted(lists.cell, np.asarray(cells, lists.cell.dtype))
     l_cell, l_light, l_q = lists.cell[lo:hi], lists.light[lo:hi], lists.q[lo:hi]
     l_sure = lists.sure[lo:hi] if lists.sure is not None else np.zeros(hi - lo, bool)
     v = patches.vertices
@@ -706,22 +719,30 @@ class _ProbeGrid:
         return np.unique(self.code(near, np.repeat(lt, len(self.STEP))))
 
     # the findings: a bitmap per flag over every (cell, light) code when that is small
-    # (DENSE_CODES), dilated by one cell at the end; else sorted sets of spread codes
+    # (DENSE_CODES; a bit a code, the lights of a cell in ceil(L/8) bytes), dilated by one cell
+    # at the end; else sorted sets of spread codes
     def start(self, flags: int) -> None:
         self.dense = int(np.prod(self.dims)) * self.lights <= DENSE_CODES
-        size = int(np.prod(self.dims)) * self.lights if self.dense else 0
-        self.maps = [np.zeros(size, bool) for _ in range(flags)]
+        self.row = (self.lights + 7) // 8  # bytes of a cell's lights
+        size = int(np.prod(self.dims)) * self.row if self.dense else 0
+        self.maps = [np.zeros(size, np.uint8) for _ in range(flags)]
         self.parts: list[list[np.ndarray]] = [[] for _ in range(flags)]
+
+    def _bits(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(byte, bit mask) of each code in a map."""
+        cell, lt = np.divmod(codes, self.lights)
+        return cell * self.row + (lt >> 3), (1 << (lt & 7)).astype(np.uint8)
 
     def mark(self, flag: int, codes: np.ndarray) -> None:
         if self.dense:
-            self.maps[flag][codes] = True
+            byte, bit = self._bits(codes)
+            np.bitwise_or.at(self.maps[flag], byte, bit)
         elif len(codes):
             self.parts[flag].append(self.spread(codes))
 
     def finish(self) -> None:
         if self.dense:
-            shape = (int(self.dims[0]), int(self.dims[1]), int(self.dims[2]), self.lights)
+            shape = (int(self.dims[0]), int(self.dims[1]), int(self.dims[2]), self.row)
             for m in self.maps:
                 b = m.reshape(shape)
                 for axis in range(3):  # the 3x3x3 neighbourhood: one cell each way per axis
@@ -731,6 +752,7 @@ class _ProbeGrid:
                     lo[axis], hi[axis] = slice(0, -1), slice(1, None)
                     b[tuple(lo)] |= src[tuple(hi)]
                     b[tuple(hi)] |= src[tuple(lo)]
+                    del src
         else:
             self.sets = [np.unique(np.concatenate(p)) if p else np.zeros(0, np.int64) for p in self.parts]
             self.parts = []
@@ -738,12 +760,14 @@ class _ProbeGrid:
     def near(self, flag: int, codes: np.ndarray) -> np.ndarray:
         """(m,) True for the codes next to a probed pair with that flag."""
         if self.dense:
-            return self.maps[flag][codes]
+            byte, bit = self._bits(codes)
+            return (self.maps[flag][byte] & bit) > 0
         return _member(self.sets[flag], codes)
 
 
-#: (cell, light) codes up to which the pilot's findings are bitmaps (bytes each, per flag)
-DENSE_CODES = 1 << 27
+#: (cell, light) codes up to which the pilot's findings are bitmaps (a bit a code, per flag:
+#: 64 MB each at this size; the 20x20 office has 68M codes)
+DENSE_CODES = 1 << 29
 
 
 def _member(keys: np.ndarray, mine: np.ndarray) -> np.ndarray:
@@ -815,10 +839,7 @@ class AnalyticGather:
         # expected pair entries each: bounded memory at any size.  Two passes: the pilot on every
         # run (its findings kept as (cell, light) sets of the whole scene, so a run's edge sees the
         # next run's probes), then the gather; each run's pairs drawn twice from its own seed
-        n = lists.count[lists.cell].astype(np.float64)
-        per_cell = np.bincount(lists.cell, weights=np.where(lists.q >= 1.0, n, 2.0 * n * lists.q),
-                               minlength=len(lists.count))
-        ends = np.cumsum(per_cell)
+        ends = np.cumsum(lists.per_cell())
         runs = []
         c0 = 0
         while c0 < len(lists.count):
@@ -829,10 +850,12 @@ class AnalyticGather:
         grid = _ProbeGrid(patches, receivers, len(lights))
         grid.start(3)
         rays = 0
-        # per (cell, light) code: the weight E F / q (F at the centroid) and the present halves, to
-        # share the budget over the whole scene at one rate of rays per weight (per run it would
-        # be a small difference of large numbers: pilot and one ray a half take most of it)
+        # per (cell, light) code of each run: the weight E F / q (F at the centroid) and the present
+        # halves, to share the budget over the whole scene at one rate of rays per weight (per run
+        # it would be a small difference of large numbers: pilot and one ray a half take most of
+        # it); compact (int32 codes where they fit, float32 counts): on the 20x20 office 5.5M codes
         tallies: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        code_type = np.int32 if int(np.prod(grid.dims)) * len(lights) < 2**31 else np.int64
         for (c0, c1), seed in zip(runs, seeds):
             slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
                                                       cells=(c0, c1))
@@ -840,8 +863,8 @@ class AnalyticGather:
             f0 = _pair_form_factors(patches, lights, rec, light, None)[:, 0]
             mine, at = np.unique(grid.code(grid.cells(rec), light), return_inverse=True)
             w0 = lights.exitance[light].sum(axis=1) * f0 * inv_q
-            tallies.append((mine, np.bincount(at, weights=w0, minlength=len(mine)),
-                            np.bincount(at, weights=present.sum(axis=1), minlength=len(mine))))
+            tallies.append((mine.astype(code_type), np.bincount(at, weights=w0, minlength=len(mine)),
+                            np.bincount(at, weights=present.sum(axis=1), minlength=len(mine)).astype(np.float32)))
             del mine, at, w0, present, inv_q
             probe = np.flatnonzero((f0 > 0) & (rng.random(len(slot)) < PILOT_PAIRS))
             _, _, vis, traced = _visibility(patches, tracer, lights, emitters, rec[probe], light[probe],
@@ -854,17 +877,20 @@ class AnalyticGather:
                     grid.mark(j, codes[flag])
             del slot, light, rec, f0, probe, vis, traced, codes
         grid.finish()
-        codes = np.concatenate([t[0] for t in tallies])
-        uc, at = np.unique(codes, return_inverse=True)
-        w_code = np.bincount(at, weights=np.concatenate([t[1] for t in tallies]), minlength=len(uc))
-        h_code = np.bincount(at, weights=np.concatenate([t[2] for t in tallies]), minlength=len(uc))
-        del tallies, codes, at
-        mixed, lit, known = (grid.near(j, uc) for j in range(3))
-        dark = known & ~mixed & ~lit
-        marked = ~dark & (mixed | ~known)
-        one_each = float(np.where(dark, DARK_KEEP * h_code, np.where(w_code > 0, h_code, 0.0)).sum())
+        # the rays of one a half (dark pairs: DARK_KEEP of one) and the weight near penumbrae, run by
+        # run (a code two runs share is counted in each: its sums add up, no merge of all the codes)
+        one_each = 0.0
+        w_marked = 0.0
+        while tallies:
+            codes, w_code, h_code = tallies.pop()
+            mixed, lit, known = (grid.near(j, codes.astype(np.int64)) for j in range(3))
+            dark = known & ~mixed & ~lit
+            marked = ~dark & (mixed | ~known)
+            one_each += float(np.where(dark, DARK_KEEP * h_code, np.where(w_code > 0, h_code, 0.0)).sum())
+            w_marked += float(w_code[marked].sum())
+            del codes, w_code, h_code, mixed, lit, known, dark, marked
         self.need = max(shadow_rays * k - rays - one_each, 0.0)
-        self.weight = float(w_code[marked].sum()) if marked.any() else 0.0
+        self.weight = w_marked
         self.patches, self.tracer, self.emitters, self.power, self.lights = patches, tracer, emitters, power, lights
         self.rng, self.offset, self.batch_rays, self.receivers = rng, offset, batch_rays, receivers
         self.lists, self.runs, self.seeds, self.grid, self.halves, self.rays = lists, runs, seeds, grid, halves, rays
@@ -875,13 +901,14 @@ class AnalyticGather:
         return self.need / self.weight if self.weight > 0 else 0.0
 
     def finish(self, rate: float | None = None) -> DirectTally:
-        """The gather pass at ``rate`` (None: its own) and the tally."""
+        """The gather pass at ``rate`` (None: its own) and the tally (once: it frees the pilot's state)."""
         if self.empty is not None:
             return self.empty
         rate = self.rate if rate is None else rate
         patches, tracer, emitters, power, lights = self.patches, self.tracer, self.emitters, self.power, self.lights
         rng, offset, batch_rays, receivers = self.rng, self.offset, self.batch_rays, self.receivers
         lists, runs, seeds, grid, halves, rays = self.lists, self.runs, self.seeds, self.grid, self.halves, self.rays
+        self.lists = self.grid = self.halves = None  # type: ignore[assignment]
         for (c0, c1), seed in zip(runs, seeds):
             slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
                                                       cells=(c0, c1))
@@ -890,15 +917,19 @@ class AnalyticGather:
             rays += _gather_pairs(patches, tracer, lights, emitters, receivers, slot, light, present, inv_q,
                                   rate, rng, offset, batch_rays, halves, grid)
         lights.cache.pop("lists", None)
+        del lists, grid, runs, seeds
         received = 0.5 * (halves[0] + halves[1])
         keep = np.flatnonzero(received.any(axis=1))
         got = received[keep]
+        del received
+        received_a = 0.5 * halves[0][keep]
+        del halves
         escaped = power.sum(axis=0) - got.sum(axis=0)
         magnitude = np.abs(got)
         return DirectTally(got, receivers[keep], escaped, np.zeros(3), np.zeros(patches.n_objects),
                            np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
                            (magnitude * patches.rho[receivers[keep]]).sum(axis=0), np.abs(escaped),
-                           0.5 * halves[0][keep], rays)
+                           received_a, rays)
 
 
 def shared_rate(parts: list[AnalyticGather]) -> float:

@@ -211,3 +211,36 @@ def test_visibility_samples_lights_uniformly_both_ways(office):
             np.testing.assert_allclose(est, exact, rtol=1e-2)
     finally:
         lights.parallelogram[:] = para
+
+
+def test_probe_grid_bitmaps_and_sets_mark_the_same_neighbourhoods(office, monkeypatch):
+    """The pilot's findings as bit-packed maps (dense) and as sorted sets of spread codes: each
+    marks exactly the codes within one grid cell per axis of a marked one, same light (a
+    boolean (cells, lights) grid dilated by hand is the truth), for 13 lights (two bytes a
+    cell, the second partly used) and marks that repeat."""
+    p, _, _, _, rec = office
+    rng = np.random.default_rng(4)
+    n_l = 13  # two bytes a cell, the second partly used
+    for dense in (True, False):
+        monkeypatch.setattr(direct, "DENSE_CODES", 1 << 40 if dense else 0)
+        grid = direct._ProbeGrid(p, rec, n_l)
+        grid.start(2)
+        assert grid.dense == dense
+        d = tuple(int(x) for x in grid.dims)
+        truth = np.zeros((2,) + d + (n_l,), bool)
+        for flag in range(2):
+            for _ in range(3):  # several runs of marks, some codes twice
+                rows = rng.choice(rec, 200)
+                lt = rng.integers(0, n_l, 200)
+                cells = grid.cells(rows)
+                grid.mark(flag, np.concatenate([grid.code(cells, lt), grid.code(cells[:50], lt[:50])]))
+                for (a, b, c), light in zip(cells, lt):
+                    truth[flag, a - 1:a + 2, b - 1:b + 2, c - 1:c + 2, light] = True
+        grid.finish()
+        every = np.stack(np.meshgrid(*[np.arange(1, x - 1) for x in d], indexing="ij"), axis=-1).reshape(-1, 3)
+        for flag in range(2):
+            lt = rng.integers(0, n_l, len(every))
+            got = grid.near(flag, grid.code(every, lt))
+            want = truth[flag, every[:, 0], every[:, 1], every[:, 2], lt]
+            assert want.any() and not want.all()
+            np.testing.assert_array_equal(got, want)
