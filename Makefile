@@ -14,9 +14,9 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-## install, then solve the built-in office floor; writes out/office/
+## install, then solve the built-in office floor on two local workers (a shared run); writes out/office/
 demo: install
-	$(BIN)/dcrad solve office --out out/office
+	$(BIN)/dcrad solve office --workers 2 --out out/office
 
 ## install, then run the whole test suite (needs Docker and Chromium: see README)
 test: install

@@ -14,6 +14,8 @@ import json
 import grpc
 import numpy as np
 import pytest
+from test_service import fetch, watch
+from test_service import submit as submit_job
 
 import scenes
 from coordinator.embedded import LocalCluster
@@ -33,7 +35,6 @@ from dcrad.share import (
 )
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
-from dcrad.wire import file_chunks
 
 ACCURACY = 0.05
 
@@ -129,33 +130,7 @@ def test_wire_forms_round_trip(table, shared_two):
 
 
 def submit(address, folder, solver: dict, divide: dict | None = None):
-    def requests():
-        yield pb.SubmitRequest(spec=pb.JobSpec(scene="office.obj", solver=pb.SolverSettings(**solver),
-                                               divide=pb.DivideSettings(**(divide or {}))))
-        for path in folder.iterdir():
-            for c in file_chunks(path.read_bytes(), path.name):
-                yield pb.SubmitRequest(file=c)
-
-    with grpc.insecure_channel(address) as ch:
-        return pb_grpc.CoordinatorStub(ch).Submit(requests(), timeout=60)
-
-
-def watch(address, job_id, on_progress=None):
-    out = []
-    with grpc.insecure_channel(address) as ch:
-        for p in pb_grpc.CoordinatorStub(ch).Watch(pb.JobRef(job_id=job_id), timeout=600):
-            out.append(p)
-            if on_progress:
-                on_progress(p)
-    return out
-
-
-def fetch(address, job_id) -> dict:
-    files: dict[str, bytearray] = {}
-    with grpc.insecure_channel(address) as ch:
-        for c in pb_grpc.CoordinatorStub(ch).Fetch(pb.JobRef(job_id=job_id), timeout=120):
-            files.setdefault(c.path, bytearray()).extend(c.data)
-    return files
+    return submit_job(address, folder, "office.obj", solver, divide or {})
 
 
 def in_process(table, k: int, seed: int):
