@@ -271,6 +271,8 @@ class Job:
     curve: ErrorCurve = field(default_factory=ErrorCurve)
     divide: dict | None = None  #: the DivideConfig it runs with (kept in the record, for a resume)
     resume: Resume | None = None  #: checkpoints to resume from, after a coordinator restart
+    #: (scene, patches, patch size, timings) from the upload's validation, for the job's first run
+    prepared: tuple | None = field(default=None, repr=False)
     _waiters: list = field(default_factory=list)  #: (loop, asyncio.Event) of watchers
 
     def summary(self) -> pb.JobSummary:
@@ -470,10 +472,15 @@ class JobManager:
             shutil.rmtree(job.root, ignore_errors=True)
             raise DcradError(f"the upload has no file '{spec.scene}' (the scene named in the job)")
         try:
-            _, patches, _ = prepare(scene_dir / spec.scene, spec.solver.patch_size or None,
-                                    spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided)
+            t0 = time.perf_counter()
+            phases: dict[str, float] = {}
+            scene, patches, size = prepare(scene_dir / spec.scene, spec.solver.patch_size or None,
+                                           spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
+                                           timings=phases)
             solver_config(spec.solver)
             check_subscenes(self._divide(spec, 1).subscenes, len(patches))
+            # kept for the job's run (meshing a scene twice cost 0.4 s at 201k patches)
+            job.prepared = (scene, patches, size, {"load_and_mesh_s": time.perf_counter() - t0, **phases})
         except DcradError as exc:
             shutil.rmtree(job.root, ignore_errors=True)
             # name the file as the user uploaded it, not by the coordinator's folder
@@ -518,12 +525,16 @@ class JobManager:
     def _solve(self, job: Job) -> None:
         spec = job.spec
         config = solver_config(spec.solver)
-        t0 = time.perf_counter()
-        phases: dict[str, float] = {}
-        scene, patches, size = prepare(job.root / "scene" / spec.scene, spec.solver.patch_size or None,
-                                       spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
-                                       timings=phases)
-        timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
+        if job.prepared is not None:  # validated at the upload, moments ago
+            scene, patches, size, timings = job.prepared
+            job.prepared = None
+        else:
+            t0 = time.perf_counter()
+            phases: dict[str, float] = {}
+            scene, patches, size = prepare(job.root / "scene" / spec.scene, spec.solver.patch_size or None,
+                                           spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
+                                           timings=phases)
+            timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
         mem = MemoryLog(job.id)
         mem("load and mesh")
         # a job resumed after a restart waits longer: its workers may come back after the coordinator
@@ -664,10 +675,16 @@ class JobManager:
         timings["setup_s"] = time.perf_counter() - t0
 
         phases: list[str] = []
+        # previews and the error curve beside the workers, as a divided job's (BarrierDisplay)
+        job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
+        job.curve.folder = job.root / "curve"
+        display = BarrierDisplay(lambda b: b, job.curve, job.preview, self.count)
 
         def on_phase(name: str, elapsed: float, rays: int, est=None) -> None:
             """Progress after each phase (direct, shoot, each gather round): the status page's barriers."""
             phases.append(name)
+            if name != "direct":  # the table holds the phase's B (the direct phase leaves it at E)
+                display.offer(elapsed, len(phases), patches.radiosity.copy())
             job.workers = sorted(shares.used)
             job.updates.append(pb.Progress(job=job.summary(), barrier=len(phases), rays=rays,
                                            rms_estimate=float(est.rms) if est is not None else 0.0,
@@ -684,6 +701,7 @@ class JobManager:
             return True
         finally:
             shares.drop()
+            display.close()
         if run is None:
             log.info("job %s: its lights make no exact form factors; it divides the scene instead", job.id)
             job.state = "queued"
@@ -698,15 +716,9 @@ class JobManager:
         books, shared = shared_books(run, patches, config, timings, where=where)
         shared |= {"workers_used": sorted(shares.used), "reassigned": shares.reassigned,
                                  "bytes_sent": shares.bytes_sent}
-        job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval)
-        job.preview.render(patches.radiosity, len(phases))
-        self.count(previews=1)
-        job.preview.close()
-        # the states after the direct gather, the shooting and the gather (the last is the result)
-        for i, (snap, b) in enumerate(zip(run.snapshots[1:], run.snapshot_B[1:]), 1):
-            job.curve.record(snap.time, i, b)
-        job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config),
-                          len(run.snapshots) - 1)
+        live = job.preview
+        live.close()  # its Embree scene goes before the outputs; the final state's preview is theirs
+        job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), len(phases))
         shared["coordinator_rss_mb"] = dict(mem.phases)
         settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
                                   spec.solver.workplane)
@@ -714,8 +726,27 @@ class JobManager:
                                 spec.preview_height or 480, extra={"error_curve": self.curve_dict(job),
                                                                    "shared": shared})
         mem("outputs")
+        if live.barrier != len(phases):  # the status page shows the result's own preview (not rendered twice)
+            self._final_preview(job, len(phases))
         job.state = "cancelled" if run.stats.stopped_by == "stopped" else "done"
         return True
+
+    @staticmethod
+    def _final_preview(job: Job, barrier: int) -> None:
+        """The job page's preview from the result's (the top-down one of a floor plan), kept where a
+        restarted coordinator looks for it."""
+        out = job.root / "out"
+        src = out / "preview_top.png" if (out / "preview_top.png").is_file() else out / "preview.png"
+        try:
+            (job.root / "live").mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src, job.root / "live" / "preview-live.png")
+        except OSError as exc:
+            log.warning("job %s: cannot keep its preview (%s)", job.id, exc)
+        previous = job.preview.current[0] if job.preview is not None else 0
+        stored = StoredPreview.load(src, barrier)
+        if stored is not None:
+            stored.current = (previous + 1, barrier, stored.current[2])
+            job.preview = stored
 
     @staticmethod
     def _measured_label(run, config: SolverConfig) -> str:
