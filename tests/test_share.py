@@ -24,10 +24,12 @@ from dcrad.energy import rms_error
 from dcrad.passes import solve_to_accuracy
 from dcrad.pipeline import prepare
 from dcrad.rays import Tracer
+from dcrad.settings import to_pb
 from dcrad.share import (
     LocalShares,
     Replica,
     Shot,
+    patches_to_arrays,
     receiver_shares,
     run_shared,
     tally_from_arrays,
@@ -35,6 +37,7 @@ from dcrad.share import (
 )
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+from dcrad.wire import arrays_to_chunks
 
 ACCURACY = 0.05
 
@@ -212,3 +215,57 @@ def test_explicit_subscenes_divide_instead(office, tmp_path):
     assert progress[-1].job.state == "done", progress[-1].job.error
     report = json.loads(bytes(files["report.json"]))
     assert report.get("shared") is None and report["divided"]["subscenes"] == 2
+
+
+def test_more_shares_than_receivers_still_solve(tmp_path):
+    """A scene with fewer receivers than shares: the empty shares gather nothing, the run meets
+    its target and its books close (one shared run's shares may outnumber a small scene's patches)."""
+    from dcrad.patches import Patches
+
+    # a 1 m floor (2 triangles) under a 0.5 m emitter facing it
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1],
+                  [0.25, 1, 0.25], [0.75, 1, 0.25], [0.75, 1, 0.75], [0.25, 1, 0.75]], float)
+    f = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7]])
+    rho = np.array([[0.5] * 3, [0.5] * 3, [0] * 3, [0] * 3])
+    e = np.array([[0] * 3, [0] * 3, [10] * 3, [10] * 3])
+    p = Patches(v, f, rho, e, np.arange(4), np.zeros(4, np.int32), ["floor"])
+    cfg = SolverConfig(accuracy=0.05, seed=2)
+    run = run_shared(p, cfg, 5, LocalShares(p, cfg))
+    assert run is not None and run.ledger.closure() < 1e-10
+    assert run.stats.stopped_by in ("accuracy", "noise_floor", "tolerance")
+    assert np.all(p.radiosity[:2] > 0)  # the floor is lit
+
+
+def test_a_worker_refuses_bad_shares_by_name(table):
+    """Malformed shares get INVALID_ARGUMENT naming the problem; a share of a job whose patch table
+    the worker never got, NOT_FOUND."""
+    patches, _ = table
+    with LocalCluster(workers=1, web=False) as cluster:
+        with grpc.insecure_channel(f"127.0.0.1:{cluster.worker_ports[0]}") as ch:
+            stub = pb_grpc.WorkerStub(ch)
+
+            def share(header, arrays=None):
+                def requests():
+                    yield pb.ShareRequest(header=header)
+                    for chunk in arrays_to_chunks(arrays or {}):
+                        yield pb.ShareRequest(array=chunk)
+                return list(stub.Share(requests(), timeout=60))
+
+            settings = to_pb(SolverConfig(accuracy=0.05), pb.SolverSettings)
+            with pytest.raises(grpc.RpcError) as err:
+                share(pb.ShareHeader(job_id="j", phase="pilot", index=0, count=1, solver=settings))
+            assert err.value.code() == grpc.StatusCode.NOT_FOUND and "patch table" in err.value.details()
+            with pytest.raises(grpc.RpcError) as err:
+                share(pb.ShareHeader(job_id="j", phase="melt", index=0, count=1, solver=settings))
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "melt" in err.value.details()
+            table_arrays = {f"scene_{k}": v for k, v in patches_to_arrays(patches).items()}
+            with pytest.raises(grpc.RpcError) as err:
+                share(pb.ShareHeader(job_id="j", phase="pilot", index=0, count=1, solver=settings,
+                                     names=list(patches.names), scene=True),
+                      table_arrays | {"rows": np.array([len(patches) + 7])})
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "outside" in err.value.details()
+            with pytest.raises(grpc.RpcError) as err:  # the table is held now; a gather without its inputs
+                share(pb.ShareHeader(job_id="j", phase="gather", index=0, count=1, solver=settings),
+                      {"rows": np.array([0, 1])})
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+            assert "no array 'shot_radiosity'" in err.value.details()

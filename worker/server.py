@@ -168,7 +168,9 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                 patches = patches_from_arrays(table, list(header.names))
                 self.scenes[job] = (patches, await asyncio.to_thread(Tracer, patches.triangles))
                 self.scene_locks.setdefault(job, asyncio.Lock())
-        except (DcradError, KeyError, TypeError, ValueError) as exc:
+        except KeyError as exc:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run share: the request has no array {exc}")
+        except (DcradError, TypeError, ValueError) as exc:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run share: {exc}")
         if job not in self.scenes:
             await context.abort(grpc.StatusCode.NOT_FOUND, f"no patch table of job {job} on this worker")
@@ -208,8 +210,11 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                     rep = await asyncio.to_thread(run_replica, patches, config, tracer, tally, header.index,
                                                   header.count, lambda: cancelled.is_set() or stop.is_set())
                     out = rep.to_arrays()
-            except (DcradError, KeyError, TypeError, ValueError) as exc:
-                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run share: {exc}")
+            except KeyError as exc:
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {header.phase} share: "
+                                                                      f"the request has no array {exc}")
+            except (DcradError, TypeError, ValueError) as exc:
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {header.phase} share: {exc}")
             log.info("job %s: %s share %d of %d in %.1f s", job, header.phase, header.index, header.count,
                      time.perf_counter() - t0)
         for chunk in arrays_to_chunks(out):
