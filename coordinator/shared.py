@@ -128,8 +128,11 @@ class RemoteShares:
         out = self._all("direct", [r | {"rate": np.array([rate])} for r in rows])
         return [tally_from_arrays(a, len(self.patches)) if a else None for a in out]
 
-    def replicas(self, direct, k: int, should_stop=None) -> list[Replica]:
+    def replicas(self, direct, k: int, should_stop=None, time_left: float = 0.0) -> list[Replica]:
+        """The k replicas at once; ``time_left`` s of the job's time limit for each (0: none)."""
         tally = {f"tally_{name}": v for name, v in tally_to_arrays(direct).items()}
+        if time_left:
+            self.settings.time_limit = time_left
         stop = threading.Event()
         watcher = None
         if should_stop is not None:

@@ -310,8 +310,10 @@ class LocalShares:
         rate = shared_rate([g for g in pilots if g is not None])
         return [g.finish(rate) if g is not None else None for g in pilots]
 
-    def replicas(self, direct: DirectTally, k: int, should_stop=None) -> list[Replica]:
-        return [run_replica(self.patches, self.config, self.tracer, direct, i, k, should_stop) for i in range(k)]
+    def replicas(self, direct: DirectTally, k: int, should_stop=None, time_left: float = 0.0) -> list[Replica]:
+        """The k replicas (one after another here); ``time_left`` s (0: no limit) for each."""
+        cfg = self.config.replace(time_limit=time_left) if time_left else self.config
+        return [run_replica(self.patches, cfg, self.tracer, direct, i, k, should_stop) for i in range(k)]
 
     def gather(self, shot: Shot, shares: list[np.ndarray], rounds: list[int]):
         """[(sum_a, sum_b, rays traced)] of each share."""
@@ -353,7 +355,9 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     b_direct[direct.hit] += patches.rho[direct.hit] * direct.received / patches.area[direct.hit, None]
     if on_phase is not None:
         on_phase("direct", seconds["direct_s"], direct_rays, None)
-    replicas = shares.replicas(direct, k, should_stop)
+    # the replicas run at once: each gets what is left of the job's time limit
+    left = max(cfg.time_limit - (time.perf_counter() - t0), 1e-3) if cfg.time_limit else 0.0
+    replicas = shares.replicas(direct, k, should_stop, left)
     shot, noise = blend(patches, replicas)
     est = estimate_of(patches, noise, shot)
     seconds["shoot_s"] = time.perf_counter() - t0 - seconds["direct_s"]

@@ -269,3 +269,15 @@ def test_a_worker_refuses_bad_shares_by_name(table):
                       {"rows": np.array([0, 1])})
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
             assert "no array 'shot_radiosity'" in err.value.details()
+
+
+def test_a_shared_run_keeps_to_its_time_limit(table):
+    """A time limit the run cannot meet its target in: it stops at the limit (the replicas get what
+    the direct shares left of it, the gather is skipped), says so, and its books close."""
+    patches, tracer = table
+    patches.reset()
+    cfg = SolverConfig(accuracy=0.001, seed=6, time_limit=0.5)
+    run = run_shared(patches, cfg, 2, LocalShares(patches, cfg, tracer))
+    assert run.stats.stopped_by == "time_limit" and run.rounds == []
+    assert run.ledger.closure() < 1e-10
+    assert all(r.stopped_by == "time_limit" for r in run.replicas)
