@@ -59,9 +59,10 @@ from .shooters import spatial_order
 from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, top_up
 
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
-           "Replica",
-           "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books", "tally_to_arrays",
-           "tally_from_arrays", "patches_to_arrays", "patches_from_arrays", "shared_noise", "REPLICA_SEED"]
+           "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
+           "tally_to_arrays", "tally_from_arrays", "patches_to_arrays", "patches_from_arrays", "shared_noise",
+           "REPLICA_SEED"]
+
 #: replica i seeds its random streams this much after replica i - 1 (passes.PASS_SEED's role)
 REPLICA_SEED = 104729
 #: the direct shares' random streams: (seed, DIRECT_STREAM, share index); the gather's: (seed,
@@ -72,8 +73,8 @@ DIRECT_STREAM, GATHER_STREAM = 7, 11
 def shares_possible(config: SolverConfig, receivers: int) -> bool:
     """A shared run can take this job: accuracy mode with the direct light gathered, and at most
     MAX_ANALYTIC_RECEIVERS receivers (where the exact gather, and so the final plan, is used).
-    The lights must also make exact-form-factor polygons: the first share finds out
-    (``direct_share`` returns None, and the job divides space instead)."""
+    The lights must also make exact-form-factor polygons: the direct shares find out
+    (``direct_pilot`` returns None, and the job divides space instead)."""
     return by_accuracy(config) and config.direct and 0 < receivers <= MAX_ANALYTIC_RECEIVERS
 
 
@@ -101,7 +102,8 @@ def replica_config(config: SolverConfig, k: int, index: int, patches: int) -> So
 
 def shared_noise(patches: Patches, direct: DirectTally) -> float:
     """W^2/m^4: the noise mean square of the direct light ``direct`` (noise.combine's d2 / area / 4
-    over its half difference D = rho 2 (2 P_A - P) / A), which every replica shares."""
+    over its half difference D = rho 2 (2 P_A - P) / A), which every replica shares (each rescales
+    it to its own emitter rays' landed power, by about 1)."""
     hit = direct.hit
     d = patches.rho[hit] * (2.0 * (2.0 * direct.received_a - direct.received)) / patches.area[hit, None]
     return float((patches.area[hit] * (d * d).mean(axis=1)).sum()) / max(float(patches.total_area), 1e-300) / 4.0
