@@ -558,7 +558,6 @@ class JobManager:
         resume = self._resume_handles(job, handles)
         mem("partition")
         job.state, job.started = "running", time.time() - (resume.elapsed if resume else 0.0)
-        views = self._views_ahead(job, scene, patches)
         job.divide = dataclasses.asdict(divide)
         self._save(job)
         writer = CheckpointWriter(folder, start_barrier=resume.barrier if resume else 0)
@@ -572,6 +571,8 @@ class JobManager:
             for i, h in enumerate(handles):
                 h.place(prefer=workers[slots[i]] if workers else None)
             timings["setup_s"] = time.perf_counter() - t0  # partition, clip, load on the workers
+            # after the loading on the workers, so as not to compete with it
+            views = self._views_ahead(job, scene, patches)
             job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
             # the pieces' patches are on the workers (and in static-K.ck): keep their areas only
             pieces: list[Any] = [PieceArea(s.patches.area) for s in subs]
