@@ -21,9 +21,10 @@ import grpc
 import numpy as np
 
 from dcrad.config import SolverConfig
+from dcrad.direct import shared_rate
 from dcrad.errors import DcradError
 from dcrad.settings import to_pb
-from dcrad.share import Replica, patches_to_arrays, tally_from_arrays, tally_to_arrays
+from dcrad.share import Replica, tally_from_arrays, tally_to_arrays
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import ArrayAssembler, arrays_to_chunks
 
@@ -57,7 +58,7 @@ class RemoteShares:
         yield pb.ShareRequest(header=header)
         arrays = dict(inputs)
         if with_scene:
-            arrays |= {f"scene_{k}": v for k, v in patches_to_arrays(self.patches).items()}
+            arrays |= {f"scene_{k}": v for k, v in self.patches.table_arrays().items()}
         for chunk in arrays_to_chunks(arrays):
             self.bytes_sent += len(chunk.data)
             yield pb.ShareRequest(array=chunk)
@@ -123,8 +124,7 @@ class RemoteShares:
         pilots = self._all("pilot", rows)
         if any(not a for a in pilots):
             return [None] * len(shares)
-        need, weight = (sum(float(a["pilot"][i]) for a in pilots) for i in (0, 1))
-        rate = need / weight if weight > 0 else 0.0
+        rate = shared_rate([(float(a["pilot"][0]), float(a["pilot"][1])) for a in pilots])
         out = self._all("direct", [r | {"rate": np.array([rate])} for r in rows])
         return [tally_from_arrays(a, len(self.patches)) if a else None for a in out]
 

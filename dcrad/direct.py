@@ -935,10 +935,11 @@ class AnalyticGather:
                            received_a, rays)
 
 
-def shared_rate(parts: list[AnalyticGather]) -> float:
-    """One rate for the pilots of several shares of the receivers: their rays left over their weight."""
-    weight = sum(g.weight for g in parts)
-    return sum(g.need for g in parts) / weight if weight > 0 else 0.0
+def shared_rate(parts) -> float:
+    """One rate for the pilots of several shares of the receivers, from their (``need``, ``weight``)
+    pairs: their rays left over their weight."""
+    weight = sum(w for _, w in parts)
+    return sum(n for n, _ in parts) / weight if weight > 0 else 0.0
 
 
 #: shadow rays traced at once by the analytic gather (about 0.5 KB a ray in ``_visibility``)

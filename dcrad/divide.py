@@ -44,7 +44,7 @@ from .boundary import (
     make_boundary,
 )
 from .config import DivideConfig, SolverConfig
-from .energy import ACCOUNTS, MAGNITUDES, Ledger
+from .energy import Ledger
 from .errors import ConfigError
 from .noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
 from .partition import clip, partition
@@ -890,9 +890,8 @@ def boundaries_from_array(table: np.ndarray) -> list[Boundary]:
 def subscene_arrays(sub: Subscene) -> dict:
     """What a worker needs to rebuild a subscene: its patches and boundaries."""
     p = sub.patches
-    return {"vertices": p.vertices, "faces": p.faces, "rho": p.rho, "emission": p.emission,
-            "source": p.source, "obj": p.obj, "radiosity": p.radiosity, "unshot": p.unshot, "twin": p.twin,
-            "boundaries": boundaries_to_array(sub.boundaries)}
+    return p.table_arrays() | {"radiosity": p.radiosity, "unshot": p.unshot,
+                               "boundaries": boundaries_to_array(sub.boundaries)}
 
 
 #: the buffers a subscene holds between barriers, saved in checkpoints as NAME_array
@@ -910,7 +909,7 @@ def checkpoint_arrays(sub: Subscene) -> dict:
     rng = json.dumps(sub.rng.bit_generator.state).encode()
     return {
         "radiosity": sub.patches.radiosity, "unshot": sub.patches.unshot,
-        "ledger": np.stack([getattr(led, a) for a in ACCOUNTS + MAGNITUDES]),
+        "ledger": led.to_array(),
         "return_tallies": sub.tallies,
         "stats": np.array([sub.stats.shots, sub.stats.rays, sub.stats.batches, sub.twins_delivered,
                            sub.twin_blocks], np.int64),
@@ -927,13 +926,10 @@ def checkpoint_arrays(sub: Subscene) -> dict:
 def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: str, names: list[str],
                    arrays: dict, local_target: float = 0.0) -> Subscene:
     """Rebuild a subscene from ``subscene_arrays`` (plus ``checkpoint_arrays`` to resume)."""
-    p = Patches(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
-                arrays["obj"], list(names), radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy(),
-                **({"twin": arrays["twin"]} if "twin" in arrays else {}))
+    p = Patches.from_table(arrays, names, radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy())
     sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode, local_target)
     if "ledger" in arrays:  # resume from a checkpoint
-        for a, row in zip(ACCOUNTS + MAGNITUDES, arrays["ledger"]):
-            setattr(sub.ledger, a, np.array(row, np.float64))
+        sub.ledger = Ledger.from_array(arrays["ledger"])
         if "return_tallies" in arrays:
             sub.tallies = np.array(arrays["return_tallies"], np.float64).reshape(4, 3)
         stats = [int(x) for x in arrays["stats"]] + [0, 0]

@@ -79,6 +79,15 @@ class Ledger:
             setattr(self, name, getattr(self, name) + getattr(other, name))
         return self
 
+    def to_array(self) -> np.ndarray:
+        """(10, 3): every account, in ACCOUNTS + MAGNITUDES order (checkpoints, the wire)."""
+        return np.stack([getattr(self, a) for a in ACCOUNTS + MAGNITUDES])
+
+    @staticmethod
+    def from_array(rows) -> "Ledger":
+        """The inverse of ``to_array``."""
+        return Ledger(**{a: np.array(row, np.float64) for a, row in zip(ACCOUNTS + MAGNITUDES, rows)})
+
     def copy(self) -> "Ledger":
         return Ledger(**{k: np.array(v, np.float64) for k, v in self.as_arrays().items()})
 

@@ -76,6 +76,25 @@ def read_hits(tracer: Tracer, patches: Patches, origins: np.ndarray, dirs: np.nd
     return (out, t) if distance else out
 
 
+def _half_samples(patches: Patches, rows: np.ndarray, m: int, dims: int, rng: np.random.Generator):
+    """``m`` samples per half of each receiver of ``rows``, each half its own randomly shifted rank-1
+    lattice: (u (M,dims), owner (M,), in half A (M,), points on the receivers (M,3) lifted off them,
+    their normals (M,3)); the points run through the lattice in another order (STRIDE)."""
+    k = len(rows)
+    sets = 2 * k
+    index = np.tile(np.arange(m), sets)
+    shift = rng.random((sets, dims + 2))
+    u = lattice(index, np.repeat(shift[:, :dims], m, axis=0), dims)
+    u_pos = lattice((index * STRIDE) % m, np.repeat(shift[:, dims:], m, axis=0), 2)
+    owner = np.repeat(np.arange(k), 2 * m)
+    in_a = np.tile(np.repeat([True, False], m), k)
+    f = patches.faces[rows[owner]]
+    v = patches.vertices
+    n = patches.normal[rows[owner]]
+    points = triangle_points(v[f[:, 0]], v[f[:, 1]], v[f[:, 2]], u_pos) + ray_offset(patches) * n
+    return u, owner, in_a, points, n
+
+
 def gather_rays(patches: Patches, rows: np.ndarray, half: int, rng: np.random.Generator):
     """Gather rays of ``rows`` (k,), 2 x ``half`` each: (origins (m,3), dirs (m,3), owner (m,), in half A (m,)).
 
@@ -85,19 +104,7 @@ def gather_rays(patches: Patches, rows: np.ndarray, half: int, rng: np.random.Ge
     so both are stratified in 2-D.  (The shooting's 4-D lattice has coarser 2-D
     projections: its sampling noise on Cornell at 256 rays was 1.35%, these 1.25%.)
     """
-    k = len(rows)
-    sets = 2 * k
-    index = np.tile(np.arange(half), sets)
-    shift = rng.random((sets, 4))
-    u_dir = lattice(index, np.repeat(shift[:, :2], half, axis=0), 2)
-    u_pos = lattice((index * STRIDE) % half, np.repeat(shift[:, 2:], half, axis=0), 2)
-    owner = np.repeat(np.arange(k), 2 * half)
-    in_a = np.tile(np.repeat([True, False], half), k)
-    r = rows[owner]
-    f = patches.faces[r]
-    v = patches.vertices
-    n = patches.normal[r]
-    origins = triangle_points(v[f[:, 0]], v[f[:, 1]], v[f[:, 2]], u_pos) + ray_offset(patches) * n
+    u_dir, owner, in_a, origins, n = _half_samples(patches, rows, half, 2, rng)
     t, b = onb(n)
     x, y, z = cosine_hemisphere_columns(u_dir[:, 0], u_dir[:, 1])
     dirs = x[:, None] * t + y[:, None] * b + z[:, None] * n
@@ -240,21 +247,11 @@ class FinalGather:
         """``m`` area samples of the bright set per receiver and half (Bright); returns the rays traced."""
         p = self.patches
         k = len(rows)
-        sets = 2 * k
-        index = np.tile(np.arange(m), sets)
-        shift = rng.random((sets, 5))
-        u = lattice(index, np.repeat(shift[:, :3], m, axis=0), 3)
-        u_pos = lattice((index * STRIDE) % m, np.repeat(shift[:, 3:], m, axis=0), 2)
-        owner = np.repeat(np.arange(k), 2 * m)
-        in_a = np.tile(np.repeat([True, False], m), k)
+        u, owner, in_a, x, n = _half_samples(p, rows, m, 3, rng)
         j = bright.draw(u[:, 0])
         v = p.vertices
         f = p.faces[j]
         y = triangle_points(v[f[:, 0]], v[f[:, 1]], v[f[:, 2]], u[:, 1:])
-        r = rows[owner]
-        f = p.faces[r]
-        n = p.normal[r]
-        x = triangle_points(v[f[:, 0]], v[f[:, 1]], v[f[:, 2]], u_pos) + ray_offset(p) * n
         d = y - x
         dist = np.sqrt(np.einsum("ij,ij->i", d, d))
         d /= np.maximum(dist, 1e-300)[:, None]

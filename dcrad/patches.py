@@ -115,6 +115,20 @@ class Patches:
             self.unshot = self.emission.copy()
         self.twin = np.full(n, -1, np.int64) if self.twin is None else np.ascontiguousarray(self.twin, np.int64)
 
+    # -- as arrays (a worker's copy) ---------------------------------------------------
+    def table_arrays(self) -> dict:
+        """The table's own arrays (not B or dB): what ``from_table`` rebuilds it from."""
+        return {"vertices": self.vertices, "faces": self.faces, "rho": self.rho, "emission": self.emission,
+                "source": self.source, "obj": self.obj, "twin": self.twin}
+
+    @classmethod
+    def from_table(cls, arrays: dict, names: list, radiosity: np.ndarray | None = None,
+                   unshot: np.ndarray | None = None) -> "Patches":
+        """The table of ``table_arrays`` (``twin`` optional), B and dB given or starting at E."""
+        given = {"radiosity": radiosity, "unshot": unshot, "twin": arrays.get("twin")}
+        return cls(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
+                   arrays["obj"], list(names), **{k: v for k, v in given.items() if v is not None})
+
     # -- derived geometry (cached) -------------------------------------------------
     def __len__(self) -> int:
         return len(self.faces)

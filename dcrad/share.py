@@ -60,7 +60,7 @@ from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, top_up
 
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
-           "tally_to_arrays", "tally_from_arrays", "patches_to_arrays", "patches_from_arrays", "shared_noise",
+           "tally_to_arrays", "tally_from_arrays", "shared_noise",
            "REPLICA_SEED"]
 
 #: replica i seeds its random streams this much after replica i - 1 (passes.PASS_SEED's role)
@@ -163,7 +163,7 @@ class Replica:
                                                           "ray_factor": self.stiff.ray_factor,
                                                           "ret": self.stiff.ret}}
         return {name: getattr(self, name) for name in self._STATE} | {
-            "tallies": self.tallies, "ledger": np.stack([getattr(self.ledger, a) for a in ACCOUNTS + MAGNITUDES]),
+            "tallies": self.tallies, "ledger": self.ledger.to_array(),
             "back_by_obj": self.back_by_obj, "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
 
     @classmethod
@@ -173,7 +173,7 @@ class Replica:
             if np.shape(arrays[name]) != (n, 3):
                 raise ValueError(f"replica array {name} has shape {np.shape(arrays[name])}, not ({n}, 3)")
         meta = json.loads(bytes(np.asarray(arrays["meta"], np.uint8)).decode())
-        led = Ledger(**{a: np.array(row, np.float64) for a, row in zip(ACCOUNTS + MAGNITUDES, arrays["ledger"])})
+        led = Ledger.from_array(arrays["ledger"])
         st = meta.get("stiff")
         stiff = None if st is None else Stiffness(np.array(st["scale"], np.float64), st["ray_factor"], st["ret"])
         state = {name: np.asarray(arrays[name], np.float64) for name in cls._STATE}
@@ -309,7 +309,7 @@ class LocalShares:
         pilots = [direct_pilot(self.patches, self.config, self.tracer, rows, i) for i, rows in enumerate(shares)]
         if any(g is None for g in pilots):
             return [None] * len(shares)
-        rate = shared_rate([g for g in pilots if g is not None])
+        rate = shared_rate([(g.need, g.weight) for g in pilots if g is not None])
         return [g.finish(rate) if g is not None else None for g in pilots]
 
     def replicas(self, direct: DirectTally, k: int, should_stop=None, time_left: float = 0.0) -> list[Replica]:
@@ -489,13 +489,3 @@ def tally_from_arrays(arrays: dict, n: int) -> DirectTally:
     vals["hit"], vals["received"] = hit, received
     return DirectTally(**vals, rays=int(np.asarray(arrays["rays"]).ravel()[0]))
 
-
-def patches_to_arrays(p: Patches) -> dict:
-    """The patch table as a worker rebuilds it (B and dB start at E there)."""
-    return {"vertices": p.vertices, "faces": p.faces, "rho": p.rho, "emission": p.emission, "source": p.source,
-            "obj": p.obj, "twin": p.twin}
-
-
-def patches_from_arrays(arrays: dict, names: list[str]) -> Patches:
-    return Patches(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
-                   arrays["obj"], list(names), twin=arrays["twin"])

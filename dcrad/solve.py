@@ -599,14 +599,12 @@ class Solver:
         if self.replicas <= 1:
             return est.rms_refl
         sums = self.noise.sums()
-        area = max(sums.area, 1e-300)
-        rms_r = math.sqrt(max(sums.r2, 0.0) / area)
-        if rms_r <= 0:
+        refl_ms = max(sums.r2, 0.0) / max(sums.area, 1e-300)  # RMS(B - E)^2, the estimate's reference
+        if refl_ms <= 0:
             return est.rms_refl
-        noise_ms = max(sums.d2, 0.0) / area / 4.0
-        shared = min(self.shared_noise, noise_ms)
-        blend_ms = shared + (noise_ms - shared) / self.replicas + (est.bias_refl * rms_r) ** 2
-        return math.sqrt(blend_ms) / rms_r
+        noise = est.noise_refl ** 2
+        shared = min(self.shared_noise / refl_ms, noise)
+        return math.sqrt(shared + (noise - shared) / self.replicas + est.bias_refl ** 2)
 
     def snapshot(self, force: bool = False) -> None:
         """Record a snapshot when the ray count passed the next geometric mark."""

@@ -29,7 +29,6 @@ from dcrad.share import (
     LocalShares,
     Replica,
     Shot,
-    patches_to_arrays,
     receiver_shares,
     run_shared,
     tally_from_arrays,
@@ -258,7 +257,7 @@ def test_a_worker_refuses_bad_shares_by_name(table):
             with pytest.raises(grpc.RpcError) as err:
                 share(pb.ShareHeader(job_id="j", phase="melt", index=0, count=1, solver=settings))
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "melt" in err.value.details()
-            table_arrays = {f"scene_{k}": v for k, v in patches_to_arrays(patches).items()}
+            table_arrays = {f"scene_{k}": v for k, v in patches.table_arrays().items()}
             with pytest.raises(grpc.RpcError) as err:
                 share(pb.ShareHeader(job_id="j", phase="pilot", index=0, count=1, solver=settings,
                                      names=list(patches.names), scene=True),

@@ -21,6 +21,7 @@ from coordinator.rpc import shutdown, start_server, stop_on_signals
 from dcrad.config import SolverConfig
 from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
+from dcrad.patches import Patches
 from dcrad.rays import Tracer
 from dcrad.settings import from_pb
 from dcrad.share import (
@@ -28,7 +29,6 @@ from dcrad.share import (
     direct_pilot,
     direct_share,
     gather_share,
-    patches_from_arrays,
     run_replica,
     tally_from_arrays,
     tally_to_arrays,
@@ -165,7 +165,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                 raise ValueError(f"bad share: phase {header.phase!r}, index {header.index} of {header.count}")
             if header.scene:
                 table = {k[len("scene_"):]: v for k, v in arrays.items() if k.startswith("scene_")}
-                patches = patches_from_arrays(table, list(header.names))
+                patches = Patches.from_table(table, list(header.names))
                 self.scenes[job] = (patches, await asyncio.to_thread(Tracer, patches.triangles))
                 self.scene_locks.setdefault(job, asyncio.Lock())
         except KeyError as exc:
