@@ -20,6 +20,7 @@ from __future__ import annotations
 import ctypes
 import os
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -110,12 +111,22 @@ def _read_port(proc: subprocess.Popen, role: str, timeout: float, on_line=None) 
     raise DcradError(f"the {role} did not start listening within {timeout:.0f} s")
 
 
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port on ``host`` that nothing listens on now (the kernel's choice)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
 class LocalCluster:
-    """``with LocalCluster(workers=2) as c: c.address`` -> "127.0.0.1:PORT"."""
+    """``with LocalCluster(workers=2) as c: c.address`` -> "127.0.0.1:PORT".
+
+    ``with LocalCluster(workers=2, wait=False) as c: ...; c.wait()`` starts the processes and
+    lets the caller work while they import."""
 
     def __init__(self, workers: int = 2, data: str | Path | None = None, python: str = sys.executable,
                  log_dir: str | Path | None = None, start_timeout: float = 60.0,
-                 coordinator_args: tuple[str, ...] = (), port: int = 0, web: bool = True):
+                 coordinator_args: tuple[str, ...] = (), port: int = 0, web: bool = True, wait: bool = True):
         self.n_workers = workers
         self._tmp: tempfile.TemporaryDirectory[str] | None = None
         if not data:
@@ -128,6 +139,7 @@ class LocalCluster:
         self.coordinator_args = tuple(coordinator_args)
         self.port = port
         self.web = web
+        self.wait_ready = wait  #: ``with`` waits for the processes (False: the caller calls ``wait()``)
         self.web_url = ""  #: "http://127.0.0.1:PORT" of the status pages ("" when off)
         self.coordinator: subprocess.Popen | None = None
         self.workers: list[subprocess.Popen] = []
@@ -185,34 +197,59 @@ class LocalCluster:
                 time.sleep(0.05)
         raise DcradError(f"fewer than {n} workers registered within {self.start_timeout:.0f} s")
 
-    def _start_coordinator(self) -> None:
+    def _spawn_coordinator(self) -> subprocess.Popen:
         web: tuple[str, ...] = ("--web-port", "0", "--web-host", "127.0.0.1") if self.web else ("--web-port", "-1")
         if "--web-port" in self.coordinator_args:
             web = ()
         self.coordinator = self._spawn("coordinator", "--port", str(self.port), "--data",
                                        str(self.data / "coordinator"), *web, *self.coordinator_args)
+        return self.coordinator
 
+    def _coordinator_listening(self) -> None:
         def on_line(line: str) -> None:
             if " web on " in line:
                 self.web_url = line.strip().rsplit(" ", 1)[1]
 
+        assert self.coordinator is not None
         port = _read_port(self.coordinator, "coordinator", self.start_timeout, on_line)
         self.address = f"127.0.0.1:{port}"
 
-    def __enter__(self) -> "LocalCluster":
+    def _start_coordinator(self) -> None:
+        self._spawn_coordinator()
+        self._coordinator_listening()
+
+    def start(self) -> "LocalCluster":
+        """Start the coordinator and the workers at once and return (``wait`` waits for them): each
+        imports numpy, Embree and gRPC, about 0.5 s of CPU, which a caller can overlap with its
+        own work (``dcrad solve`` validates the scene meanwhile).  The coordinator's port is chosen
+        here (``port`` 0: a free one) so that the workers are told it before it listens."""
         try:
-            self._start_coordinator()
-            # all workers start at once (each imports numpy, Embree and gRPC: about 0.5 s of CPU)
-            procs = [self._spawn("worker", "--port", "0", "--coordinator", self.address, index=i)
-                     for i in range(self.n_workers)]
-            self.workers.extend(procs)
-            for proc in procs:
+            if not self.port:
+                self.port = free_port()
+            self.address = f"127.0.0.1:{self.port}"
+            self._spawn_coordinator()
+            self.workers.extend(self._spawn("worker", "--port", "0", "--coordinator", self.address, index=i)
+                                for i in range(self.n_workers))
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def wait(self) -> "LocalCluster":
+        """Wait until the coordinator listens and every worker has registered."""
+        try:
+            self._coordinator_listening()
+            for proc in self.workers[len(self.worker_ports):]:
                 self.worker_ports.append(_read_port(proc, "worker", self.start_timeout))
             self.wait_registered(self.n_workers)
         except BaseException:
             self.close()
             raise
         return self
+
+    def __enter__(self) -> "LocalCluster":
+        self.start()
+        return self.wait() if self.wait_ready else self
 
     def close(self) -> None:
         procs = [p for p in self.workers + [self.coordinator] if p is not None]

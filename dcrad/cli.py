@@ -234,12 +234,14 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
     stop = _Interrupt()
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
         path = resolve_scene(args.scene, Path(tmp))
-        # a bad scene fails here, naming the user's own file, before any process starts
         from .scene import load_scene
 
-        load_scene(path, scale=args.scale, up=args.up, two_sided=args.two_sided)
-        client.scene_paths(path)
-        with LocalCluster(workers=args.workers) as cluster:
+        # the processes start (imports: about a second) while the scene is validated here; a bad
+        # scene fails naming the user's own file, and the processes are stopped
+        with LocalCluster(workers=args.workers, wait=False) as cluster:
+            load_scene(path, scale=args.scale, up=args.up, two_sided=args.two_sided)
+            client.scene_paths(path)
+            cluster.wait()
             print(f"dcrad: coordinator {cluster.address} with {args.workers} local workers", file=sys.stderr)
             solver = config.as_dict() | scene_values(args)
             divide = divide_from_args(args, args.subscenes or SUBSCENES_PER_WORKER * args.workers).as_dict()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -114,10 +115,13 @@ def _is_floor_plan(patches: Patches) -> bool:
 @dataclass
 class OutputViews:
     """What ``write_outputs`` needs that does not depend on B: the Embree scene of every patch, the
-    preview camera and, for a floor plan, the cut-away mask, top-down camera and its Embree scene.
+    preview camera and, for a floor plan, the cut-away mask, top-down camera and its Embree scene;
+    built ahead (``output_views(ahead=True)``), also both views' primary hits and the corner
+    smoothing's pairs, so that what is left once B is known is a gather and a sum.
 
-    A coordinator builds it in a thread while its workers solve (``output_views``): at 1.27M
-    patches the two Embree scenes took 6.0 s and the automatic camera 1.6 s of the outputs' 18.7 s.
+    A coordinator builds it in a thread while its workers solve: at 1.27M patches the two Embree
+    scenes took 6.0 s and the automatic camera 1.6 s of the outputs' 18.7 s; at 201k patches the
+    two views' rays and the corner pairs were 3.0 s of the coordinator's 5.4 s of outputs.
     """
 
     tracer: Tracer
@@ -126,21 +130,35 @@ class OutputViews:
     mask: np.ndarray | None = None
     top_camera: render.Camera | None = None
     top_tracer: Tracer | None = None
+    hits: render.ViewHits | None = None  #: the preview camera's hits (ahead)
+    top_hits: render.ViewHits | None = None  #: the top-down view's hits (ahead)
+    smoother: render.CornerSmoother | None = None  #: the corner smoothing's pairs (ahead)
 
 
 def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
-                 tracer: Tracer | None = None, top: bool = True) -> OutputViews:
+                 tracer: Tracer | None = None, top: bool = True, ahead: bool = False,
+                 smoother: render.CornerSmoother | None = None) -> OutputViews:
     """The ``OutputViews`` of ``patches`` (``tracer``: an Embree scene over ``patches.triangles`` to
     reuse, the solve's; None: build one).  ``top`` False: the top-down Embree scene is left for
-    ``write_outputs`` to build when it renders that view (one process: no two scenes held at once)."""
+    ``write_outputs`` to build when it renders that view (one process: no two scenes held at once).
+    ``ahead``: also trace both views (the top-down Embree scene is then freed) and form the corner
+    pairs (``smoother``, if given, is used for them)."""
     tracer = tracer if tracer is not None else Tracer(patches.corners())
     camera = (render.camera_from_dict(scene.camera, width, height) if scene.camera
               else render.auto_camera(patches, width, height, tracer=tracer))
-    if not _is_floor_plan(patches):
-        return OutputViews(tracer, camera, False)
-    mask = render.cutaway_mask(patches)
-    return OutputViews(tracer, camera, True, mask, render.topdown_camera(patches, width, height),
-                       Tracer(patches.corners(mask)) if top else None)
+    views = OutputViews(tracer, camera, False)
+    if _is_floor_plan(patches):
+        views.floor_plan, views.mask = True, render.cutaway_mask(patches)
+        views.top_camera = render.topdown_camera(patches, width, height)
+        views.top_tracer = Tracer(patches.corners(views.mask)) if top or ahead else None
+    if ahead:
+        views.hits = render.trace_view(patches, camera, tracer=tracer, samples=render.SAMPLES)
+        if views.top_camera is not None:
+            views.top_hits = render.trace_view(patches, views.top_camera, views.mask, views.top_tracer,
+                                               samples=render.SAMPLES)
+            views.top_tracer = None  # traced: its Embree scene is not needed any more
+        views.smoother = smoother if smoother is not None else render.CornerSmoother(patches)
+    return views
 
 
 def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: int = 480,
@@ -167,15 +185,18 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     # one smoothing pass for B and the false colour's channels (lux, front coverage, back
     # coverage), kept in float32 for the GLB and both views: 72 bytes a patch, not 144
     n = len(patches)
-    both = render.corner_radiosity(patches, values=np.column_stack([patches.radiosity, lux, np.ones(n),
-                                                                    np.zeros(n)]), dtype=np.float32)
+    smoother = views.smoother or render.CornerSmoother(patches, keep_pairs=0)
+    both = smoother.apply(np.column_stack([patches.radiosity, lux, np.ones(n), np.zeros(n)]), dtype=np.float32)
     corners = both[..., :3]
     grid = photometry.workplane(patches, workplane, tracer=tracer) if workplane > 0 else None
     extra = {"valid_input": scene.valid, "patch_E_lux": lux,
              "patch_L_cd_m2": photometry.luminance_cd(patches.radiosity)}
     if grid is not None:
         extra |= {"workplane_points": scene.to_input_frame(grid["points"]), "workplane_lux": grid["lux"]}
-    export.write_radiosity_npz(out / "radiosity.npz", patches, len(scene.faces), extra)
+    # zlib lets go of the GIL: the compressed npz is written beside the meshes and views
+    npz = ThreadPoolExecutor(max_workers=1, thread_name_prefix="npz")
+    npz_done = npz.submit(export.write_radiosity_npz, out / "radiosity.npz", patches, len(scene.faces), extra)
+    npz.shutdown(wait=False)
     written["radiosity"] = "radiosity.npz"
     export.write_patches_ply(out / "patches.ply", patches, rotation=scene.rotation)
     written["patches"] = "patches.ply"
@@ -187,8 +208,8 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     # seen from behind, B shows the neutral flag grey and the false colour counts "back"
     flag = np.concatenate([np.multiply(render.BACKFACE_COLOR, 0.9 / exposure), [0.0, 0.0, 1.0 / np.pi]])
     floor_plan = views.floor_plan
-    both_img = render.render(patches, camera, corner_values=both, tracer=tracer, samples=render.SAMPLES,
-                             backface_color=flag)
+    hits = views.hits or render.trace_view(patches, camera, tracer=tracer, samples=render.SAMPLES)
+    both_img = render.shade_view(hits, both, backface_color=flag)
     img = both_img[..., :3]
     export.write_png(out / "preview.png", render.tonemap(img, exposure=exposure, shoulder=render.SHOULDER))
     export.write_exr(out / "preview.exr", img)
@@ -196,9 +217,10 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     written["preview_exr"] = "preview.exr"
     view = "preview camera"
     if floor_plan and views.top_camera is not None:
-        both_img = render.render(patches, views.top_camera, mask=views.mask, corner_values=both,
-                                 samples=render.SAMPLES, backface_color=flag,
-                                 tracer=views.top_tracer or Tracer(patches.corners(views.mask)))
+        top_hits = views.top_hits or render.trace_view(patches, views.top_camera, views.mask,
+                                                       views.top_tracer or Tracer(patches.corners(views.mask)),
+                                                       samples=render.SAMPLES)
+        both_img = render.shade_view(top_hits, both, backface_color=flag)
         img = both_img[..., :3]
         export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure, shoulder=render.SHOULDER))
         export.write_exr(out / "preview_top.exr", img)
@@ -211,6 +233,7 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     fc = both_img[..., 3:].astype(np.float64) * np.pi
     export.write_png(out / "illuminance.png", photometry.false_colour(fc[..., 0], fc[..., 1], fc[..., 2], top))
     written["illuminance_png"] = "illuminance.png"
+    npz_done.result()
     if sections is not None:
         section = {
             "efficacy_lm_per_W": photometry.EFFICACY, "Y_weights_rgb": photometry.Y_WEIGHTS.tolist(),

@@ -21,6 +21,10 @@ __all__ = [
     "Camera",
     "BACKFACE_COLOR",
     "corner_radiosity",
+    "CornerSmoother",
+    "ViewHits",
+    "trace_view",
+    "shade_view",
     "auto_camera",
     "camera_from_dict",
     "topdown_camera",
@@ -152,6 +156,95 @@ def _position_groups(points: np.ndarray, tol: float, origin: np.ndarray):
         return group, int(new.sum())
 
 
+#: a CornerSmoother keeps its pairs (12 bytes each) when there are at most this many (the office
+#: 8x8: 3.6M); above, ``apply`` forms them again chunk by chunk (the 20x20 office: ~23M)
+KEEP_PAIRS = 8_000_000
+
+
+class CornerSmoother:
+    """Which patches each corner averages over, and with what weights: ``corner_radiosity`` without
+    the values, so the part that depends on the geometry only is done once (a coordinator does it
+    while its workers solve) and each ``apply(values)`` is a gather and a segmented sum.
+
+    The value at corner k of patch p is the area-weighted mean of ``values`` over every patch q
+    having a corner at the same position (within ``merge_tol * patches.scale``, so duplicated
+    vertices merge) whose normal is within ``crease_angle_deg`` of p's normal.  Patches facing
+    away from each other (n_p . n_q <= 0, e.g. the two sides of a thin wall) never mix,
+    whatever the angle.  Patches with no valid neighbour (degenerate) keep their own value.
+    Pairs: sum over positions of (corners there)^2, formed ``max_pairs`` at a time (the result
+    does not depend on it) and kept when there are at most ``keep_pairs`` of them.
+    """
+
+    def __init__(self, patches, crease_angle_deg: float = 30.0, merge_tol: float = 1e-7,
+                 max_pairs: int = 1 << 18, keep_pairs: int | None = None):
+        n = len(patches)
+        self.n = n
+        self.m = m = 3 * n
+        self._chunks: list[tuple] | None = []
+        if n == 0:
+            self.bounds = np.zeros(1, np.int64)
+            return
+        tol = max(merge_tol * patches.scale, 1e-300)
+        faces = getattr(patches, "faces", None)
+        if faces is not None:  # positions grouped per mesh vertex (a vertex has ~5 corners), not per corner
+            vgroup, n_groups = _position_groups(patches.vertices, tol, patches.bounds[0])
+            group = vgroup[np.asarray(faces).reshape(-1)]
+            del vgroup
+        else:
+            corners = patches.triangles.reshape(-1, 3)
+            group, n_groups = _position_groups(corners, tol, corners.min(axis=0))
+        small = np.int32 if m < 2**31 else np.int64  # corner indices: half the bytes
+        self.order = np.argsort(group, kind="stable").astype(small)
+        counts = np.bincount(group, minlength=n_groups)
+        starts = np.cumsum(counts) - counts
+        gs = group[self.order]
+        del group
+        self.k = counts[gs].astype(small)  # partners of each sorted corner (itself included)
+        self.first = starts[gs].astype(small)  # sorted position of its group's first corner
+        del gs, starts, counts
+        self.ps = (self.order // 3).astype(small)  # patch of each sorted corner
+        self.normal, self.area = patches.normal, patches.area
+        self.cos_t = math.cos(math.radians(min(max(crease_angle_deg, 0.0), 180.0))) - 1e-9
+        ends = np.cumsum(self.k, dtype=np.int64)
+        self.pairs = int(ends[-1])
+        cuts = np.searchsorted(ends, np.arange(max_pairs, ends[-1], max_pairs), side="right")
+        self.bounds = np.unique(np.concatenate([[0], cuts, [m]]))
+        del ends, cuts
+        if self.pairs <= (KEEP_PAIRS if keep_pairs is None else keep_pairs):
+            self._chunks = [self._pairs(lo, hi) for lo, hi in zip(self.bounds[:-1], self.bounds[1:])]
+        else:
+            self._chunks = None
+
+    def _pairs(self, lo: int, hi: int):
+        """Sorted corners lo .. hi: (their corners (c,), run starts (c,), partner patches (p,), weights (p,)
+        normalised per run, whether the corner has a valid partner (c,))."""
+        kk = self.k[lo:hi].astype(np.int64)
+        seg = np.cumsum(kk) - kk  # where each corner's run of pairs starts
+        ps = self.ps
+        pb = ps[np.arange(int(kk.sum())) + np.repeat(self.first[lo:hi] - seg, kk)]  # partner's patch
+        dot = np.einsum("ij,ij->i", np.repeat(self.normal[ps[lo:hi]], kk, axis=0), self.normal[pb])
+        w = np.where((dot >= self.cos_t) & (dot > 0.0), self.area[pb], 0.0)
+        den = np.add.reduceat(w, seg)
+        ok = den > 0
+        w /= np.repeat(np.where(ok, den, 1.0), kk)
+        return self.order[lo:hi], seg, pb, w, ok
+
+    def apply(self, values: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """(n, C) or (n,) values per patch -> (n, 3 corners, C) ``dtype``: the means in float64, stored
+        as ``dtype`` (float32 halves the result: 1.27M patches, 6 channels, 91 MB instead of 183)."""
+        vals = np.asarray(values, np.float64).reshape(self.n, -1)
+        nch = vals.shape[1]
+        out = np.empty((self.n, 3, nch), dtype)
+        out[:] = vals[:, None, :]
+        flat = out.reshape(self.m, nch)
+        chunks = self._chunks if self._chunks is not None else (
+            self._pairs(lo, hi) for lo, hi in zip(self.bounds[:-1], self.bounds[1:]))
+        for dest, seg, pb, w, ok in chunks:
+            num = np.add.reduceat(w[:, None] * vals[pb], seg, axis=0)
+            flat[dest[ok]] = num[ok]
+        return out
+
+
 def corner_radiosity(
     patches,
     crease_angle_deg: float = 30.0,
@@ -160,71 +253,13 @@ def corner_radiosity(
     max_pairs: int = 1 << 18,
     dtype=np.float64,
 ) -> np.ndarray:
-    """Smooth per-corner radiosity that does not bleed across creases.
+    """Smooth per-corner radiosity that does not bleed across creases (``CornerSmoother``, once).
 
-    The value at corner k of patch p is the area-weighted mean of ``values``
-    (default ``patches.radiosity``) over every patch q having a corner at the
-    same position (within ``merge_tol * patches.scale``, so duplicated vertices
-    merge) whose normal is within ``crease_angle_deg`` of p's normal.  Patches
-    facing away from each other (n_p . n_q <= 0, e.g. the two sides of a thin
-    wall) never mix, whatever the angle.  Patches with no valid neighbour
-    (degenerate) keep their own value.  Cost: sum over positions of
-    (corners there)^2 pairs, processed ``max_pairs`` at a time (the result does
-    not depend on it).  Means are computed in float64 and stored as ``dtype``:
-    float32 halves the result (1.27M patches, 6 channels: 91 MB instead of 183).
-
-    returns (n, 3 corners, C channels) ``dtype``, C = 3 for radiosity
+    returns (n, 3 corners, C channels) ``dtype``, C = 3 for radiosity (``values``: default
+    ``patches.radiosity``)
     """
     vals = patches.radiosity if values is None else values
-    vals = np.asarray(vals, np.float64).reshape(len(patches), -1)
-    n, nch = vals.shape
-    out = np.empty((n, 3, nch), dtype)
-    out[:] = vals[:, None, :]
-    if n == 0:
-        return out
-    tol = max(merge_tol * patches.scale, 1e-300)
-    faces = getattr(patches, "faces", None)
-    if faces is not None:  # positions grouped per mesh vertex (a vertex has ~5 corners), not per corner
-        vertices = patches.vertices
-        origin = patches.bounds[0]  # the corners' own minimum: the same cells as grouping the corners
-        vgroup, n_groups = _position_groups(vertices, tol, origin)
-        group = vgroup[np.asarray(faces).reshape(-1)]
-        del vgroup
-    else:
-        corners = patches.triangles.reshape(-1, 3)
-        group, n_groups = _position_groups(corners, tol, corners.min(axis=0))
-    m = len(group)
-    small = np.int32 if m < 2**31 else np.int64  # corner indices: half the bytes
-    order = np.argsort(group, kind="stable").astype(small)
-    counts = np.bincount(group, minlength=n_groups)
-    starts = np.cumsum(counts) - counts
-    gs = group[order]
-    del group
-    k = counts[gs].astype(small)  # partners of each sorted corner (itself included)
-    first = starts[gs].astype(small)  # sorted position of its group's first corner
-    del gs, starts, counts
-    ps = (order // 3).astype(small)  # patch of each sorted corner
-    normal, area = patches.normal, patches.area
-    cos_t = math.cos(math.radians(min(max(crease_angle_deg, 0.0), 180.0))) - 1e-9
-    flat = out.reshape(m, nch)
-    # sorted corners in chunks of about max_pairs pairs; per-corner values are gathered per
-    # chunk (whole-table copies of normals and values per corner were most of the outputs'
-    # memory at 1.27M patches)
-    ends = np.cumsum(k, dtype=np.int64)
-    cuts = np.searchsorted(ends, np.arange(max_pairs, ends[-1], max_pairs), side="right")
-    bounds = np.unique(np.concatenate([[0], cuts, [m]]))
-    del ends, cuts
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
-        kk = k[lo:hi].astype(np.int64)
-        seg = np.cumsum(kk) - kk  # where each corner's run of pairs starts
-        pb = ps[np.arange(int(kk.sum())) + np.repeat(first[lo:hi] - seg, kk)]  # partner's patch
-        dot = np.einsum("ij,ij->i", np.repeat(normal[ps[lo:hi]], kk, axis=0), normal[pb])
-        w = np.where((dot >= cos_t) & (dot > 0.0), area[pb], 0.0)
-        den = np.add.reduceat(w, seg)
-        num = np.add.reduceat(w[:, None] * vals[pb], seg, axis=0)
-        ok = den > 0
-        flat[order[lo:hi][ok]] = num[ok] / den[ok, None]
-    return out
+    return CornerSmoother(patches, crease_angle_deg, merge_tol, max_pairs, keep_pairs=0).apply(vals, dtype)
 
 
 # ---------------------------------------------------------------------------------
@@ -416,6 +451,100 @@ def _jitter(samples: int) -> np.ndarray:
     return np.clip(cells + (rng.random(cells.shape) - 0.5) / k, 0.0, 1.0 - 1e-9)
 
 
+@dataclass
+class ViewHits:
+    """A view's primary hits, every jitter sample: what a render does not need B for.
+
+    ``trace_view`` casts them once; ``shade_view`` turns corner values into an image from
+    them (a coordinator traces its output views while its workers solve, and a live
+    preview traces its view once for all its renders).
+    """
+
+    width: int
+    height: int
+    samples: int
+    pixel: np.ndarray  #: (m,) int32 pixel of each hit (row-major)
+    patch: np.ndarray  #: (m,) patch shown (a two-sided patch seen from behind: its back side)
+    bc: np.ndarray  #: (m, 3) float32 barycentrics of the hit point on that patch
+    back: np.ndarray  #: (m,) bool: a one-sided patch seen from behind (the flag colour)
+
+
+def trace_view(patches, camera: Camera, mask: np.ndarray | None = None, tracer: Tracer | None = None,
+               samples: int = 1) -> ViewHits:
+    """The primary hits of ``camera``'s view of ``patches`` (``mask``, ``tracer``, ``samples`` as in
+    :func:`render`)."""
+    n = len(patches)
+    idx = np.arange(n) if mask is None else np.flatnonzero(np.asarray(mask, bool).reshape(n))
+    if tracer is None:
+        tracer = Tracer(patches.corners(idx))
+    elif tracer.n != len(idx):
+        raise ValueError(f"tracer holds {tracer.n} triangles but the mask selects {len(idx)}")
+    twin = getattr(patches, "twin", None)
+    pixel, patch, bcs, backs = [], [], [], []
+    for jit in _jitter(samples):
+        origins, dirs = camera.rays(jit)
+        prim, t = tracer.intersect(origins, dirs)
+        hits = np.flatnonzero(prim != MISS)
+        # RENDER_CHUNK hits at a time: the triangles and barycentrics of a whole 640 x 480 view
+        # were 120 MB of temporaries
+        for lo in range(0, len(hits), RENDER_CHUNK):
+            hit = hits[lo:lo + RENDER_CHUNK]
+            p = idx[prim[hit]]
+            back = np.einsum("ij,ij->i", dirs[hit], patches.normal[p]) > 0
+            if twin is not None:
+                other = twin[p]
+                seen = back & (other >= 0)
+                p = np.where(seen, other, p)  # a two-sided patch from behind: its back side
+                back &= ~seen
+            point = origins[hit] + t[hit, None] * dirs[hit]
+            bcs.append(barycentric(patches.corners(p), point).astype(np.float32))
+            pixel.append(hit.astype(np.int32))
+            patch.append(p)
+            backs.append(back)
+    if not pixel:
+        return ViewHits(camera.width, camera.height, len(_jitter(samples)), np.zeros(0, np.int32),
+                        np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(0, bool))
+    return ViewHits(camera.width, camera.height, len(_jitter(samples)), np.concatenate(pixel),
+                    np.concatenate(patch), np.concatenate(bcs), np.concatenate(backs))
+
+
+def shade_view(view: ViewHits, corner_values: np.ndarray, backface_color=None,
+               exposure: float | None = None) -> np.ndarray:
+    """(H, W, C) float32 radiance values / pi of a traced view (``corner_values`` (n, 3, C) for the
+    whole table; ``backface_color``, ``exposure`` as in :func:`render`)."""
+    cv = np.asarray(corner_values)
+    cv = cv.reshape(cv.shape[0], 3, -1)
+    nch = cv.shape[2]
+    size = view.width * view.height
+    total = np.zeros((size, nch))
+    fronts = []
+    need_fronts = backface_color is None and not (exposure is not None and exposure > 0)
+    for lo in range(0, len(view.pixel), RENDER_CHUNK):
+        sl = slice(lo, lo + RENDER_CHUNK)
+        back = view.back[sl]
+        corners = cv[view.patch[sl]].astype(np.float64, copy=False)
+        value = np.einsum("ik,ikc->ic", view.bc[sl].astype(np.float64), corners)
+        value /= math.pi
+        value[back] = 0.0  # shown as the flag colour below
+        if need_fronts:
+            fronts.append(value[~back])
+        for c in range(nch):
+            total[:, c] += np.bincount(view.pixel[sl], weights=value[:, c], minlength=size)
+    if backface_color is None:
+        if exposure is not None and exposure > 0:
+            ref = 0.9 / exposure
+        else:
+            front = luminance(np.concatenate(fronts)) if nch == 3 and fronts else np.zeros(0)
+            ref = float(np.percentile(front, 99.0)) if front.size else 0.0
+        flag = np.resize(np.asarray(BACKFACE_COLOR), nch) * (ref if ref > 0 else 1.0)
+    else:
+        flag = np.resize(np.asarray(backface_color, np.float64), nch)
+    behind = np.bincount(view.pixel[view.back], minlength=size).astype(np.float64)
+    total += behind[:, None] * flag  # the flag colour stands in for those samples' (zero) value
+    img = total / view.samples
+    return img.reshape(view.height, view.width, nch).astype(np.float32)
+
+
 def render(
     patches,
     camera: Camera,
@@ -426,7 +555,7 @@ def render(
     samples: int = 1,
     exposure: float | None = None,
 ) -> np.ndarray:
-    """Ray-cast image of the patch table.
+    """Ray-cast image of the patch table (``trace_view``, then ``shade_view``).
 
     mask          : (n,) bool, patches to draw (default all)
     corner_values : (n, 3, C) values per corner for the *whole* table (default
@@ -445,60 +574,10 @@ def render(
 
     returns (H, W, C) float32 radiance B / pi (values / pi); misses are 0.
     """
-    n = len(patches)
-    idx = np.arange(n) if mask is None else np.flatnonzero(np.asarray(mask, bool).reshape(n))
+    view = trace_view(patches, camera, mask, tracer, samples)
     if corner_values is None:
         corner_values = corner_radiosity(patches)
-    corner_values = np.asarray(corner_values)  # any float dtype: gathered per hit, interpolated in float64
-    corner_values = corner_values.reshape(n, 3, -1)
-    nch = corner_values.shape[2]
-    # the front faces' luminance sets the flag colour only without a colour or an exposure
-    need_fronts = backface_color is None and not (exposure is not None and exposure > 0)
-    if tracer is None:
-        tracer = Tracer(patches.corners(idx))
-    elif tracer.n != len(idx):
-        raise ValueError(f"tracer holds {tracer.n} triangles but the mask selects {len(idx)}")
-    twin = getattr(patches, "twin", None)
-    total = np.zeros((camera.height * camera.width, nch))
-    backs, fronts = [], []
-    for jit in _jitter(samples):
-        origins, dirs = camera.rays(jit)
-        prim, t = tracer.intersect(origins, dirs)
-        hits = np.flatnonzero(prim != MISS)
-        seen_back = np.zeros(len(prim), bool)
-        # shaded RENDER_CHUNK hits at a time: the gathered corners, triangles and barycentrics
-        # of a whole 640 x 480 view were 120 MB of temporaries; the pixels do not depend on it
-        for lo in range(0, len(hits), RENDER_CHUNK):
-            hit = hits[lo:lo + RENDER_CHUNK]
-            p = idx[prim[hit]]
-            back = np.einsum("ij,ij->i", dirs[hit], patches.normal[p]) > 0
-            if twin is not None:
-                other = twin[p]
-                seen = back & (other >= 0)
-                p = np.where(seen, other, p)  # a two-sided patch from behind: its back side
-                back &= ~seen
-            point = origins[hit] + t[hit, None] * dirs[hit]
-            bc = barycentric(patches.corners(p), point)
-            value = np.einsum("ik,ikc->ic", bc, corner_values[p].astype(np.float64, copy=False)) / math.pi
-            value[back] = 0.0  # shown as the flag colour below
-            if need_fronts:
-                fronts.append(value[~back])
-            total[hit] += value
-            seen_back[hit[back]] = True
-        backs.append(seen_back)
-    if backface_color is None:
-        if exposure is not None and exposure > 0:
-            ref = 0.9 / exposure
-        else:
-            front = luminance(np.concatenate(fronts)) if nch == 3 and fronts else np.zeros(0)
-            ref = float(np.percentile(front, 99.0)) if front.size else 0.0
-        flag = np.resize(np.asarray(BACKFACE_COLOR), nch) * (ref if ref > 0 else 1.0)
-    else:
-        flag = np.resize(np.asarray(backface_color, np.float64), nch)
-    for seen_back in backs:
-        total[seen_back] += flag  # the flag colour stands in for the sample's (zero) value
-    img = total / len(backs)
-    return img.reshape(camera.height, camera.width, nch).astype(np.float32)
+    return shade_view(view, np.asarray(corner_values).reshape(len(patches), 3, -1), backface_color, exposure)
 
 
 def scene_exposure(patches, percentile: float = 99.0, white: float = 0.9) -> float:

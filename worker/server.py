@@ -241,12 +241,16 @@ async def register_forever(coordinator: str, address: str, capacity: int, name: 
     """Register with the coordinator, retrying with backoff; then re-register every ``period`` s."""
     delay = 0.2
     registered = False
-    async with grpc.aio.insecure_channel(coordinator) as channel:
+    # a worker started beside its coordinator (LocalCluster) registers the moment it listens: the
+    # first calls wait for the channel, which retries its connection every 0.1-2 s
+    backoff = [("grpc.initial_reconnect_backoff_ms", 100), ("grpc.min_reconnect_backoff_ms", 100),
+               ("grpc.max_reconnect_backoff_ms", 2000)]
+    async with grpc.aio.insecure_channel(coordinator, options=backoff) as channel:
         stub = pb_grpc.CoordinatorStub(channel)
         while not stop.is_set():
             try:
                 await stub.RegisterWorker(pb.WorkerInfo(address=address, capacity=capacity, name=name),
-                                          timeout=5.0)
+                                          timeout=5.0, wait_for_ready=not registered)
                 if not registered:
                     log.info("registered with coordinator %s as %s", coordinator, address)
                 registered, delay = True, period
