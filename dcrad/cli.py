@@ -233,12 +233,13 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
         raise DcradError("--planes works in process only (--workers 0)")
     stop = _Interrupt()
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
-        path = resolve_scene(args.scene, Path(tmp))
         from .scene import load_scene
 
-        # the processes start (imports: about a second) while the scene is validated here; a bad
-        # scene fails naming the user's own file, and the processes are stopped
+        # the processes start (imports: about a second) while the scene is written (a built-in
+        # one) and validated here; a bad scene fails naming the user's own file, and the
+        # processes are stopped
         with LocalCluster(workers=args.workers, wait=False) as cluster:
+            path = resolve_scene(args.scene, Path(tmp))
             load_scene(path, scale=args.scale, up=args.up, two_sided=args.two_sided)
             client.scene_paths(path)
             cluster.wait()

@@ -85,3 +85,28 @@ def test_killed_solve_leaves_no_process(tmp_path, sig):
         for p, s in kids.items():  # never leave them to the machine, even when the test fails
             if alive(p, s):
                 os.kill(p, signal.SIGKILL)
+
+
+def test_cluster_started_without_waiting_registers_or_stops_with_the_callers_error(tmp_path):
+    """LocalCluster(wait=False) returns while its processes import (dcrad solve validates the scene
+    meanwhile): wait() then sees the coordinator listen and every worker register; an error in the
+    caller's block (a bad scene) stops every process it started."""
+    import grpc
+
+    from coordinator.embedded import LocalCluster
+    from dcrad.v1 import dcrad_pb2 as pb
+    from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
+
+    with LocalCluster(workers=2, data=tmp_path / "a", web=False, wait=False) as cluster:
+        assert cluster.coordinator is not None and len(cluster.workers) == 2
+        assert cluster.address.endswith(f":{cluster.port}") and cluster.port > 0
+        cluster.wait()
+        with grpc.insecure_channel(cluster.address) as ch:
+            listed = pb_grpc.CoordinatorStub(ch).ListWorkers(pb.ListWorkersRequest(), timeout=10).workers
+        assert sum(w.alive for w in listed) == 2
+    procs = []
+    with pytest.raises(RuntimeError, match="bad scene"):
+        with LocalCluster(workers=2, data=tmp_path / "b", web=False, wait=False) as cluster:
+            procs = [cluster.coordinator, *cluster.workers]
+            raise RuntimeError("bad scene")
+    assert len(procs) == 3 and all(p is not None and p.poll() is not None for p in procs)

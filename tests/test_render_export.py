@@ -19,13 +19,16 @@ from dcrad.patches import Patches
 from dcrad.render import (
     BACKFACE_COLOR,
     Camera,
+    CornerSmoother,
     auto_camera,
     barycentric,
     corner_radiosity,
     cutaway_mask,
     render,
+    shade_view,
     tonemap,
     topdown_camera,
+    trace_view,
 )
 
 
@@ -537,3 +540,38 @@ def test_two_sided_statistics_count_the_lit_side_whatever_the_winding():
     entries = {e["name"]: e for e in photometry.surface_stats(p, lux)}
     assert entries["floor"]["E_min_lux"] == 300.0 and entries["floor"]["uniformity"] == 1.0
     assert entries["floor (other side)"]["E_max_lux"] == 0.0
+
+
+def test_corner_smoother_kept_pairs_equal_pairs_formed_per_call():
+    """The smoother's pairs kept (in chunks of any size) or formed again at each apply give the same
+    corners, for any channels; corner_radiosity (checked against plain loops above) is its apply."""
+    rng = np.random.default_rng(5)
+    box = _box(open_front=False)
+    values = rng.random((len(box), 6))
+    kept = CornerSmoother(box, max_pairs=7)
+    formed = CornerSmoother(box, keep_pairs=0)
+    assert kept._chunks is not None and formed._chunks is None
+    a, b = kept.apply(values), formed.apply(values)
+    assert np.allclose(a, b, rtol=1e-13, atol=0)
+    assert np.allclose(a[..., :3], corner_radiosity(box, values=values[:, :3]), rtol=1e-13, atol=0)
+    assert kept.apply(values[:, 0], dtype=np.float32).shape == (len(box), 3, 1)
+
+
+def test_a_traced_view_shades_any_values_like_a_render():
+    """A view traced once (trace_view) and shaded many times (shade_view) gives each time what a
+    render of those values gives; shading is linear in the corner values."""
+    rng = np.random.default_rng(6)
+    box = _box(open_front=False)
+    cam = auto_camera(box, 32, 24)
+    mask = cutaway_mask(box)
+    top = topdown_camera(box, 32, 32)
+    front = trace_view(box, cam, samples=4)
+    above = trace_view(box, top, mask=mask, samples=4)
+    black = np.zeros(3)
+    for _ in range(2):
+        v1, v2 = rng.random((len(box), 3)), rng.random((len(box), 3))
+        c1, c2 = corner_radiosity(box, values=v1), corner_radiosity(box, values=v2)
+        assert np.allclose(shade_view(front, c1), render(box, cam, corner_values=c1, samples=4), atol=1e-6)
+        assert np.allclose(shade_view(above, c2), render(box, top, mask=mask, corner_values=c2, samples=4), atol=1e-6)
+        parts = shade_view(front, c1, backface_color=black) + shade_view(front, c2, backface_color=black)
+        assert np.allclose(shade_view(front, c1 + c2, backface_color=black), parts, rtol=1e-5, atol=1e-6)
