@@ -154,7 +154,10 @@ class LocalCluster:
         with open(self.log_dir / f"{args[0]}-{len(self.workers) if index is None else index}.log", "ab") as err:
             return subprocess.Popen([self.python, "-m", "dcrad.cli", *args], stdout=subprocess.PIPE, stderr=err,
                                     text=True, env=env, stdin=subprocess.DEVNULL,
-                                    start_new_session=True)  # a terminal Ctrl-C reaches only the parent
+                                    # a process group of its own, so a terminal Ctrl-C reaches only the parent;
+                                    # the parent's session, so its scheduler autogroup: the coordinator's
+                                    # background threads (nice 10, jobs.background) yield to the workers
+                                    process_group=0)
 
     def start_worker(self) -> int:
         """Start one more worker; returns its index."""
