@@ -9,6 +9,9 @@ held there).  A share is a
 pure function of its inputs, so one whose worker is lost (``remote.LOST``) runs
 again on another live worker with the same result; a worker that lost the patch
 table (restarted) gets it again.  A stop request cancels the calls in flight.
+The direct and gather phases have more shares than workers (``share.work_shares``),
+taken one at a time by each worker as it comes free (``_queued``); the gather's shot
+solution goes to each worker once.
 """
 
 from __future__ import annotations
@@ -51,12 +54,13 @@ class RemoteShares:
         self._calls: list = []
         self._lock = threading.Lock()
         self.cancelled = False
+        self.shot_on: set[str] = set()  #: addresses holding the gather's shot solution (sent once each)
 
-    def _requests(self, phase: str, index: int, count: int, inputs: dict, with_scene: bool):
+    def _requests(self, phase: str, index: int, count: int, inputs: dict, with_scene: bool, with_shot: bool = True):
         header = pb.ShareHeader(job_id=self.job_id, phase=phase, index=index, count=count, solver=self.settings,
                                 names=list(self.patches.names), scene=with_scene)
         yield pb.ShareRequest(header=header)
-        arrays = dict(inputs)
+        arrays = {k: v for k, v in inputs.items() if with_shot or not k.startswith("shot_")}
         if with_scene:
             arrays |= {f"scene_{k}": v for k, v in self.patches.table_arrays().items()}
         for chunk in arrays_to_chunks(arrays):
@@ -78,7 +82,8 @@ class RemoteShares:
             try:
                 for attempt in range(2):
                     with_scene = w.address not in self.loaded
-                    replies = w.stub().Share(self._requests(phase, index, count, inputs, with_scene),
+                    with_shot = w.address not in self.shot_on  # the worker keeps it for the job
+                    replies = w.stub().Share(self._requests(phase, index, count, inputs, with_scene, with_shot),
                                              timeout=self.timeout)
                     with self._lock:
                         self._calls.append(replies)
@@ -88,10 +93,13 @@ class RemoteShares:
                             asm.add(chunk)
                         self.loaded.add(w.address)
                         self.used.add(w.address)
+                        if any(k.startswith("shot_") for k in inputs):
+                            self.shot_on.add(w.address)
                         return asm.result()
                     except grpc.RpcError as exc:
                         if exc.code() == grpc.StatusCode.NOT_FOUND and attempt == 0:
                             self.loaded.discard(w.address)  # restarted: it needs the table again
+                            self.shot_on.discard(w.address)
                             continue
                         raise
                     finally:
@@ -106,26 +114,80 @@ class RemoteShares:
                             w.address, phase, index, exc.code().name)
                 self.pool.mark_dead(w)
                 self.loaded.discard(w.address)
+                self.shot_on.discard(w.address)
                 exclude.add(w.address)
                 self.reassigned += 1
             finally:
                 self.pool.release(w)
 
     def _all(self, phase: str, inputs: list[dict]) -> list[dict]:
+        """One share per worker, all at once (the replicas)."""
         k = len(inputs)
         with ThreadPoolExecutor(max_workers=k) as ex:
             futures = [ex.submit(self._call, phase, i, k, inp) for i, inp in enumerate(inputs)]
             return [f.result() for f in futures]
 
+    def _queued(self, phase: str, inputs: list[dict], sticky: bool = False) -> list[dict]:
+        """The shares of a phase, one at a time per live worker, each worker taking the next as it
+        comes free (``share.work_shares`` orders them big ones first): first those placed on it by
+        an earlier phase (its pilot, its gather's rounds are held there), then unplaced ones, then
+        (unless ``sticky``) the last share waiting for another worker, which it runs from the
+        start (a share is a pure function of its inputs: the same result wherever it runs)."""
+        n = len(inputs)
+        results: list[dict | None] = [None] * n
+        pending = list(range(n))
+        lock = threading.Lock()
+        errors: list[BaseException] = []
+
+        def placed_on(i: int) -> WorkerEntry | None:
+            w = self.placed.get(i)
+            return w if w is not None and w.alive else None
+
+        def next_for(w: WorkerEntry) -> int | None:
+            mine = [i for i in pending if (p := placed_on(i)) is not None and p.address == w.address]
+            free = [i for i in pending if placed_on(i) is None]
+            if mine or free:
+                return (mine or free)[0]
+            return None if sticky or not pending else pending[-1]
+
+        def serve(w: WorkerEntry) -> None:
+            while w.alive and not errors and not self.cancelled:
+                with lock:
+                    i = next_for(w)
+                    if i is None:
+                        return
+                    pending.remove(i)
+                    self.placed[i] = w
+                try:
+                    results[i] = self._call(phase, i, n, inputs[i])
+                except BaseException as exc:  # noqa: BLE001 - raised below, in the caller's thread
+                    errors.append(exc)
+                    return
+
+        workers = self.pool.live()
+        if not workers:
+            raise NoWorkers(f"no live worker can take the {phase} shares")
+        threads = [threading.Thread(target=serve, args=(w,), name=f"share-{phase}-{self.job_id}")
+                   for w in workers]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        if errors:
+            raise errors[0]
+        for i in list(pending):  # their workers were lost while they waited (sticky): anywhere now
+            results[i] = self._call(phase, i, n, inputs[i])
+        return [r if r is not None else {} for r in results]
+
     def direct(self, shares: list[np.ndarray]):
         """Each share's pilot, then its gather at the shared rate (``direct.shared_rate``): the pilot
         stays on its worker in between; a worker that lost it pilots again (same stream, same light)."""
         rows = [{"rows": np.asarray(r, np.int64)} for r in shares]
-        pilots = self._all("pilot", rows)
+        pilots = self._queued("pilot", rows)
         if any(not a for a in pilots):
             return [None] * len(shares)
         rate = shared_rate([(float(a["pilot"][0]), float(a["pilot"][1])) for a in pilots])
-        out = self._all("direct", [r | {"rate": np.array([rate])} for r in rows])
+        out = self._queued("direct", [r | {"rate": np.array([rate])} for r in rows])
         return [tally_from_arrays(a, len(self.patches)) if a else None for a in out]
 
     def replicas(self, direct, k: int, should_stop=None, time_left: float = 0.0) -> list[Replica]:
@@ -152,7 +214,13 @@ class RemoteShares:
     def gather(self, shot, shares: list[np.ndarray], rounds: list[int]):
         """[(sum_a, sum_b, rays traced)] of each share's final gather after ``rounds``."""
         inputs = shot.to_arrays() | {"rounds": np.asarray(rounds, np.int64)}
-        out = self._all("gather", [inputs | {"rows": np.asarray(r, np.int64)} for r in shares])
+        if len(rounds) == 1:  # a new shot: the placements were the direct shares'
+            self.shot_on.clear()
+            for i in range(len(shares)):
+                self.placed.pop(i, None)
+        # after the first round a share's gather so far is held on its worker: it stays there
+        out = self._queued("gather", [inputs | {"rows": np.asarray(r, np.int64)} for r in shares],
+                           sticky=len(rounds) > 1)
         for a, rows in zip(out, shares):
             if any(name not in a or np.shape(a[name]) != (len(rows), 3) for name in ("sum_a", "sum_b")):
                 raise DcradError("a worker's gather share does not match its receivers")

@@ -7,12 +7,14 @@ reads the whole scene's light.  Dividing space would throw it away (the 8x8
 office at 2%: 307M rays on two workers against 48.7M in one process,
 bench/RESULTS.md).  A shared run keeps it and divides the work instead:
 
-1. **direct**: the receivers are split into k runs along a Morton curve
-   (``receiver_shares``); worker i gathers the exact direct light of run i
+1. **direct**: the receivers are split into runs along a Morton curve, 4 per
+   worker in sizes that halve from each round of k runs to the next
+   (``work_shares``: the workers take them big ones first as they come free, so
+   they finish together); each share gathers the exact direct light of its run
    (``Solver.direct_pilot``: the cost is per receiver-light pair, not per ray, so
    splitting receivers is what divides it), its pilot first; the shadow rays left
    after the pilots go to every share's penumbrae at one rate (``direct.shared_rate``),
-   as in one gather of every receiver.  The k tallies are merged
+   as in one gather of every receiver.  The tallies are merged
    (``direct.merge``): the direct light of every receiver, gathered once.
 2. **shoot**: every worker runs an independent replica ``Solver`` over the whole
    scene from that direct light (``run_replica``), with its own random streams:
@@ -24,7 +26,7 @@ bench/RESULTS.md).  A shared run keeps it and divides the work instead:
    in the mean square, less the direct light's, which all share
    (``shared_noise``, ``Solver.target_error``).
 3. **gather**: the final gather of the average, split by receivers as in 1: each
-   worker traces the full number of gather rays for its receivers
+   share traces the full number of gather rays for its receivers
    (``gather_share``; splitting the rays instead, k gathers of 1/k of them each,
    lost the stratification's gain: on the office 3x3, 62 rays a patch gave 2.40%
    where 124 gave 1.57%), and the shared run combines the sums
@@ -60,7 +62,7 @@ from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, top_up
 
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
-           "tally_to_arrays", "tally_from_arrays", "shared_noise",
+           "tally_to_arrays", "tally_from_arrays", "shared_noise", "work_shares", "SHARES_PER_WORKER",
            "REPLICA_SEED"]
 
 #: replica i seeds its random streams this much after replica i - 1 (passes.PASS_SEED's role)
@@ -85,6 +87,26 @@ def receiver_shares(patches: Patches, k: int) -> list[np.ndarray]:
     rec = np.flatnonzero(patches.rho.any(axis=1))
     order = rec[spatial_order(patches, rec)]
     return [np.sort(part) for part in np.array_split(order, k)]
+
+
+#: a shared run over k > 1 workers splits its receivers into this many shares per worker, in
+#: sizes that halve from one round of k shares to the next (``work_shares``): the workers take
+#: them big ones first as they come free (coordinator/shared.py), so their last shares are small
+#: and they finish together (office 8x8, 2 equal shares: the direct and final gathers' shares
+#: ran 3.1 / 2.1 s and 7.7 / 6.8 s, 1.9 s of a worker idle per run)
+SHARES_PER_WORKER = 4
+
+
+def work_shares(patches: Patches, k: int) -> list[np.ndarray]:
+    """The receivers of a shared run over k workers in ``SHARES_PER_WORKER`` x k Morton runs (sorted
+    rows each; one run when k is 1): round r of k runs takes 2^-r as many receivers as the first."""
+    rec = np.flatnonzero(patches.rho.any(axis=1))
+    if k <= 1:
+        return [rec]
+    order = rec[spatial_order(patches, rec)]
+    weight = np.repeat(0.5 ** np.arange(SHARES_PER_WORKER), k)
+    cuts = np.round(np.cumsum(weight)[:-1] / weight.sum() * len(order)).astype(np.int64)
+    return [np.sort(part) for part in np.split(order, cuts)]
 
 
 def replica_config(config: SolverConfig, k: int, index: int, patches: int) -> SolverConfig:
@@ -346,7 +368,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     cfg = resolve(config, len(patches))
     t0 = time.perf_counter()
     emission = patches.emission.copy()
-    parts = receiver_shares(patches, k)
+    parts = work_shares(patches, k)
     tallies = shares.direct(parts)
     if any(t is None for t in tallies):
         return None

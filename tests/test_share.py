@@ -263,11 +263,17 @@ def test_a_worker_refuses_bad_shares_by_name(table):
                                      names=list(patches.names), scene=True),
                       table_arrays | {"rows": np.array([len(patches) + 7])})
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "outside" in err.value.details()
-            with pytest.raises(grpc.RpcError) as err:  # the table is held now; a gather without its inputs
+            with pytest.raises(grpc.RpcError) as err:  # the table is held now; a gather without its shot
                 share(pb.ShareHeader(job_id="j", phase="gather", index=0, count=1, solver=settings),
-                      {"rows": np.array([0, 1])})
-            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
-            assert "no array 'shot_radiosity'" in err.value.details()
+                      {"rows": np.array([0, 1]), "rounds": np.array([4])})
+            assert err.value.code() == grpc.StatusCode.NOT_FOUND and "shot solution" in err.value.details()
+            n = len(patches)
+            shot = {"shot_radiosity": np.zeros((n, 3)), "shot_diff": np.zeros((n, 3)),
+                    "shot_direct": np.zeros((n, 2)), "shot_direct_a": np.zeros((n, 3))}
+            with pytest.raises(grpc.RpcError) as err:
+                share(pb.ShareHeader(job_id="j", phase="gather", index=0, count=1, solver=settings),
+                      shot | {"rows": np.array([0, 1]), "rounds": np.array([4])})
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "direct has shape" in err.value.details()
 
 
 def test_a_shared_run_keeps_to_its_time_limit(table):

@@ -78,6 +78,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         self.gathers: dict[tuple[str, int], object] = {}
         #: shared runs' direct shares after their pilot, by (job id, share index), until gathered
         self.pilots: dict[tuple[str, int], object] = {}
+        #: shared runs' shot solutions by job id: what every gather share of the job reads (sent once)
+        self.shots: dict[str, Shot] = {}
         #: shared runs asked to stop (phase "stop"): their replicas end cleanly with what they have
         self.stops: dict[str, threading.Event] = {}
 
@@ -198,7 +200,12 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                                                   held)
                     out = {} if got is None else tally_to_arrays(got)
                 elif header.phase == "gather":
-                    shot = Shot.from_arrays(arrays, len(patches))
+                    if "shot_radiosity" in arrays:  # sent once a job: every gather share reads it
+                        self.shots[job] = Shot.from_arrays(arrays, len(patches))
+                    shot = self.shots.get(job)
+                    if shot is None:
+                        await context.abort(grpc.StatusCode.NOT_FOUND, f"no shot solution of job {job} on this "
+                                                                       f"worker: send it with the gather share")
                     rounds = [int(r) for r in arrays["rounds"]]
                     fg, traced = await asyncio.to_thread(gather_share, patches, config, tracer, shot, rows,
                                                          header.index, rounds, self.gathers.get(key))
@@ -225,6 +232,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             self.scenes.pop(request.job_id, None)
             self.scene_locks.pop(request.job_id, None)
             self.stops.pop(request.job_id, None)
+            self.shots.pop(request.job_id, None)
             for held in (self.gathers, self.pilots):
                 for key in [key for key in held if key[0] == request.job_id]:
                     del held[key]
