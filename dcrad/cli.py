@@ -240,7 +240,8 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
         # processes are stopped
         with LocalCluster(workers=args.workers, wait=False) as cluster:
             path = resolve_scene(args.scene, Path(tmp))
-            load_scene(path, scale=args.scale, up=args.up, two_sided=args.two_sided)
+            if not path.is_relative_to(tmp):  # a built-in scene is checked by the coordinator alone
+                load_scene(path, scale=args.scale, up=args.up, two_sided=args.two_sided)
             client.scene_paths(path)
             cluster.wait()
             print(f"dcrad: coordinator {cluster.address} with {args.workers} local workers", file=sys.stderr)

@@ -614,6 +614,12 @@ def _load_gltf(path: str, warnings: list, scale: float):
 
 
 # -- up axis -------------------------------------------------------------------------------
+#: m: the farthest a vertex may lie from the origin after scaling.  The solver works in the scene's
+#: own scale (a Cornell box at 1e30 m solves like one in metres), but squared lengths and areas
+#: overflow float64 beyond about 1e150 m (--scale 1e300 failed as "invalid max_edge=inf")
+MAX_COORDINATE = 1e100
+
+
 def detect_up(vertices: np.ndarray, faces: np.ndarray, emission: np.ndarray | None = None) -> tuple[str, str]:
     """The up axis of a model (a key of UP_AXES) and how it was found.
 
@@ -722,6 +728,11 @@ def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool 
         raise SceneValueError(f"{path}: the scene has no faces")
 
     used = vertices[np.unique(faces)]
+    reach = float(np.abs(used).max()) if len(used) else 0.0
+    if not reach <= MAX_COORDINATE:
+        raise SceneValueError(f"{path}: a vertex lies {reach:.3g} m from the origin (after scale {scale:g}); "
+                              f"coordinates must stay within {MAX_COORDINATE:g} m (areas overflow beyond): check "
+                              f"--scale and the file's units")
     diag = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
     area = triangle_areas(vertices[faces])
     repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])

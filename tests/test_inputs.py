@@ -220,3 +220,20 @@ def test_web_long_ids_get_a_clean_404_and_no_traceback(tmp_path):
         assert e.value.code == 400
     log = "".join(p.read_text() for p in tmp_path.glob("coordinator-*.log"))
     assert "Traceback" not in log and "refused a bad HTTP request (400)" in log
+
+
+def test_huge_coordinates_are_named_on_every_path(tmp_path, cluster):
+    """Before: --scale 1e300 failed as "invalid max_edge=inf"; a vertex at 1e200 m the same way."""
+    path = _away_scene(tmp_path / "scene", "down")
+    far = tmp_path / "far"
+    far.mkdir()
+    (far / "s.mtl").write_text((path.parent / "s.mtl").read_text())
+    (far / "s.obj").write_text(path.read_text().replace("v 1 0 1\n", "v 1e200 0 1\n"))
+    for scene, flags in ((path, ("--scale", "1e300")), (far / "s.obj", ())):
+        r = dcrad("solve", str(scene), "--workers", "0", *flags, "--out", str(tmp_path / "o"))
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and "from the origin" in lines[0], r.stderr
+        assert "check --scale" in lines[0] and "s.obj" in lines[0]
+        with pytest.raises(grpc.RpcError) as e:
+            submit(cluster.address, scene.parent, scene.name, {"scale": float(flags[1]) if flags else 1.0}, {})
+        assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "from the origin" in e.value.details()
