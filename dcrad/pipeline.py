@@ -12,6 +12,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -124,7 +125,7 @@ class OutputViews:
     two views' rays and the corner pairs were 3.0 s of the coordinator's 5.4 s of outputs.
     """
 
-    tracer: Tracer
+    tracer: Tracer | None  #: None: built by the outputs if they trace (views made in another process)
     camera: render.Camera
     floor_plan: bool
     mask: np.ndarray | None = None
@@ -133,16 +134,32 @@ class OutputViews:
     hits: render.ViewHits | None = None  #: the preview camera's hits (ahead)
     top_hits: render.ViewHits | None = None  #: the top-down view's hits (ahead)
     smoother: render.CornerSmoother | None = None  #: the corner smoothing's pairs (ahead)
+    live: render.ViewHits | None = None  #: the live preview's view (a coordinator's, ahead)
+
+
+def live_view(scene, patches: Patches, width: int, height: int) -> render.ViewHits:
+    """The live preview's view (the status page): the scene's camera, a floor plan's top-down
+    cut-away, or the automatic camera; one ray a pixel."""
+    mask: np.ndarray | None = None
+    if scene.camera:
+        cam = render.camera_from_dict(scene.camera, width, height)
+    elif _is_floor_plan(patches):
+        cam, mask = render.topdown_camera(patches, width, height), render.cutaway_mask(patches)
+    else:
+        cam = render.auto_camera(patches, width, height)
+    idx = np.arange(len(patches)) if mask is None else np.flatnonzero(mask)
+    return render.trace_view(patches, cam, mask, Tracer(patches.corners(idx)))
 
 
 def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
                  tracer: Tracer | None = None, top: bool = True, ahead: bool = False,
-                 smoother: render.CornerSmoother | None = None) -> OutputViews:
+                 smoother: render.CornerSmoother | None = None, keep_tracers: bool = True) -> OutputViews:
     """The ``OutputViews`` of ``patches`` (``tracer``: an Embree scene over ``patches.triangles`` to
     reuse, the solve's; None: build one).  ``top`` False: the top-down Embree scene is left for
     ``write_outputs`` to build when it renders that view (one process: no two scenes held at once).
     ``ahead``: also trace both views (the top-down Embree scene is then freed) and form the corner
-    pairs (``smoother``, if given, is used for them)."""
+    pairs (``smoother``, if given, is used for them); ``keep_tracers`` False: no Embree scene is
+    kept (the views go to another process; the outputs build one if they trace)."""
     tracer = tracer if tracer is not None else Tracer(patches.corners())
     camera = (render.camera_from_dict(scene.camera, width, height) if scene.camera
               else render.auto_camera(patches, width, height, tracer=tracer))
@@ -158,6 +175,21 @@ def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
                                                samples=render.SAMPLES)
             views.top_tracer = None  # traced: its Embree scene is not needed any more
         views.smoother = smoother if smoother is not None else render.CornerSmoother(patches)
+    if not keep_tracers:
+        views.tracer = views.top_tracer = None
+    return views
+
+
+def views_of_table(table: dict, names: list, camera: dict | None, width: int = 640, height: int = 480,
+                   live_size: tuple[int, int] | None = None) -> OutputViews:
+    """``output_views(ahead=True)`` of the patch table ``table`` (``Patches.table_arrays``), without
+    Embree scenes: what a coordinator's views process returns (it gets the table, not the job);
+    with ``live_size`` also the live preview's view (``OutputViews.live``)."""
+    patches = Patches.from_table(table, names)
+    scene = SimpleNamespace(camera=camera)
+    views = output_views(scene, patches, width, height, ahead=True, keep_tracers=False)
+    if live_size is not None:
+        views.live = live_view(scene, patches, *live_size)
     return views
 
 

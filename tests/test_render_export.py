@@ -555,6 +555,11 @@ def test_corner_smoother_kept_pairs_equal_pairs_formed_per_call():
     assert np.allclose(a, b, rtol=1e-13, atol=0)
     assert np.allclose(a[..., :3], corner_radiosity(box, values=values[:, :3]), rtol=1e-13, atol=0)
     assert kept.apply(values[:, 0], dtype=np.float32).shape == (len(box), 3, 1)
+    rows = np.arange(0, len(box), 3)  # some patches' corners only (a live preview's visible ones)
+    some = CornerSmoother(box, rows=rows).apply(values)
+    assert np.allclose(some[rows], a[rows], rtol=1e-13, atol=0)
+    rest = np.setdiff1d(np.arange(len(box)), rows)
+    assert np.array_equal(some[rest], np.broadcast_to(values[rest, None, :], some[rest].shape))
 
 
 def test_a_traced_view_shades_any_values_like_a_render():
