@@ -68,8 +68,11 @@ FINAL_SHARE = 0.2
 SHADOW_SHARE = 0.03
 #: floors: rays per emitted power per patch of the shooting, shadow rays per receiver (at 2% the
 #: shares alone left the office's shot solution and direct light too noisy for more gather rays
-#: to help: 6.3M rays for 1.99%, against 1.35% for 6.2M at 1.5%)
-SHOOT_FLOOR = 30.0
+#: to help: 6.3M rays for 1.99%, against 1.35% for 6.2M at 1.5%).  With the Korobov gather the
+#: shot solution's noise (read by every gather ray) weighed more: Cornell, error (%) x sqrt(M rays)
+#: at ~6M rays: floor 30 2.44, 40 2.35, 45 2.32, 50 2.29, 60 2.30, 75 2.31 (office 3x3 at 0.0125:
+#: 30 2.73, 50 2.66); shadow rays 24 2.35, 32 2.29, 44 2.38
+SHOOT_FLOOR = 50.0
 SHADOW_FLOOR = 32
 #: fewest rays per patch shot in such a run (the shot solution is read by many gather rays,
 #: so a weak shot needs no 32 rays of its own: 8 cut Cornell's shooting rays 2x; 4 cut them
