@@ -68,7 +68,8 @@ def korobov_generator(m: int) -> int:
         z = np.arange(1, m)
     else:
         golden = (3.0 - 5.0 ** 0.5) / 2.0
-        near = np.concatenate([round(m * golden) + np.arange(-512, 513), round(m * (1 - golden)) + np.arange(-512, 513)])
+        window = np.arange(-512, 513)
+        near = np.concatenate([round(m * golden) + window, round(m * (1 - golden)) + window])
         z = np.unique(near[(near > 0) & (near < m)])
     z = z[np.gcd(z, m) == 1]
     h2 = np.arange(1, m // 2 + 1)
