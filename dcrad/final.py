@@ -30,6 +30,9 @@ Where a few patches carry much brighter reflected light than the rest (Cornell's
 tops), they are drawn by area as well and the two techniques are combined by the
 balance heuristic (``Bright``): Cornell's sampling noise per ray fell 2.4x in variance
 (0.188 -> 0.122 per sqrt(ray) at ~216 rays a receiver).
+Each receiver half's directions are a Korobov lattice of exactly its rays (sampling.
+rank1_lattice; the R2 sequence's first points before): the sampling noise at 164 rays a
+receiver fell 1.34x in variance on Cornell (0.0102 -> 0.0088 of the reflected light).
 A directional histogram per receiver group (path guiding, a defensive mixture with the
 cosine) gained at most 1.24x there even learned from 64 uncounted rays a patch, and lost
 when its pilot was part of the round (splitting the lattice cost 1.3x): not kept.

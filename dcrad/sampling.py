@@ -4,6 +4,9 @@ All maps are vectorised over rows.  Stratification comes from a rank-1
 Kronecker lattice (Roberts' R_d sequence) with a Cranley-Patterson random
 shift per shooting patch, so every shot is an independent, randomly shifted,
 well-stratified point set over (position on the triangle) x (direction).
+Where the number of points is fixed in advance (the final gather's directions per
+receiver half) a 2-D rank-1 Korobov lattice of exactly that many points
+(``rank1_lattice``) is used instead: lower discrepancy than the sequence's first m points.
 """
 
 from __future__ import annotations
