@@ -20,7 +20,7 @@ estimated RMS error over the RMS of the reflected light B - E (noise.py).  While
 
 A single-subscene run whose direct light is gathered from exact form factors
 follows a ``FinalPlan`` instead: it shoots the reflected light at a small share of
-the density, stops shooting once the bias is below BIAS_SHARE of the target
+the density, stops shooting once the bias is below FINAL_BIAS_SHARE of the target
 (``final_gather``), gathers the reflected light again with many rays per receiver
 (final.py) and tops that gather up while the estimate is above the target
 (solve.Solver.finish); ``noise_floor`` then means the gather could not get there.
@@ -39,7 +39,7 @@ from .config import SolverConfig
 __all__ = ["by_accuracy", "resolve", "rays_for", "LEGACY_TOL", "LEGACY_RAYS_PER_POWER", "MAX_PASSES",
            "noise_floor", "residual_goal", "pass_target", "describe", "noise_floor_note", "FinalPlan",
            "final_plan", "SHOOT_SHARE", "FINAL_SHARE", "SHADOW_SHARE", "FINAL_MIN_RAYS", "SHOOT_FLOOR",
-           "SHADOW_FLOOR"]
+           "SHADOW_FLOOR", "FINAL_BIAS_SHARE"]
 
 LEGACY_TOL = 0.01  #: residual tolerance when neither tol nor accuracy is set
 LEGACY_RAYS_PER_POWER = 2e5  #: ray density of runs that stop by tol
@@ -68,12 +68,21 @@ FINAL_SHARE = 0.2
 SHADOW_SHARE = 0.03
 #: floors: rays per emitted power per patch of the shooting, shadow rays per receiver (at 2% the
 #: shares alone left the office's shot solution and direct light too noisy for more gather rays
-#: to help: 6.3M rays for 1.99%, against 1.35% for 6.2M at 1.5%)
-SHOOT_FLOOR = 30.0
+#: to help: 6.3M rays for 1.99%, against 1.35% for 6.2M at 1.5%).  With the Korobov gather the
+#: shot solution's noise (read by every gather ray) weighed more: Cornell, error (%) x sqrt(M rays)
+#: at ~6M rays: floor 30 2.44, 40 2.35, 45 2.32, 50 2.29, 60 2.30, 75 2.31 (office 3x3 at 0.0125:
+#: 30 2.73, 50 2.66); shadow rays 24 2.35, 32 2.29, 44 2.38
+SHOOT_FLOOR = 50.0
 SHADOW_FLOOR = 32
 #: fewest rays per patch shot in such a run (the shot solution is read by many gather rays,
-#: so a weak shot needs no 32 rays of its own: 8 cut Cornell's shooting rays 2x)
-FINAL_MIN_RAYS = 8
+#: so a weak shot needs no 32 rays of its own: 8 cut Cornell's shooting rays 2x; 4 cut them
+#: from 1.01M to 0.76M at --accuracy 0.0175 for the same error, 1.04%)
+FINAL_MIN_RAYS = 4
+#: such a run stops shooting (and gathers) once the unshot light's bias is below this share of
+#: the target: the final gather keeps the shot total, so the bias stays in B.  Cornell at
+#: --accuracy 0.0175: 0.25 left a bias of 0.40% of the reflected light (15% of the error's
+#: square) and took 6.02M rays for 1.04%; 0.1 left 0.17% and took 6.15M for 0.99%
+FINAL_BIAS_SHARE = 0.1
 
 
 class FinalPlan:

@@ -4,15 +4,22 @@ All maps are vectorised over rows.  Stratification comes from a rank-1
 Kronecker lattice (Roberts' R_d sequence) with a Cranley-Patterson random
 shift per shooting patch, so every shot is an independent, randomly shifted,
 well-stratified point set over (position on the triangle) x (direction).
+Where the number of points is fixed in advance (the final gather's directions per
+receiver half) a 2-D rank-1 Korobov lattice of exactly that many points
+(``rank1_lattice``) is used instead: lower discrepancy than the sequence's first m points.
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 
 __all__ = [
     "kronecker_alpha",
     "lattice",
+    "korobov_generator",
+    "rank1_lattice",
     "triangle_points",
     "concentric_disk",
     "concentric_disk_inverse",
@@ -43,6 +50,65 @@ def lattice(index: np.ndarray, shift: np.ndarray, dim: int, dtype=np.float64) ->
     u = (index[:, None] + 0.5) * alpha[None, :] + shift
     u -= np.floor(u)
     return u.astype(dtype, copy=False)
+
+
+#: above this many points the generator is searched near the golden sections of m only
+KOROBOV_FULL = 2048
+
+
+@functools.lru_cache(maxsize=512)
+def korobov_generator(m: int) -> int:
+    """The generator z of the 2-D rank-1 lattice {(i/m, i z/m mod 1)} of ``m`` points with the
+    largest Zaremba index (the least over the dual lattice's nonzero (h1, h2), h1 + h2 z = 0 mod m,
+    of max(1, |h1|) max(1, |h2|): the figure of merit of a 2-D lattice rule's discrepancy), among
+    the z coprime to m (each coordinate a permutation of the m strata); ties by the longest shortest
+    vector on the torus.  At a Fibonacci m it is the Fibonacci lattice (89: 34).  Above
+    KOROBOV_FULL points only the z within 512 of m (3 -+ sqrt 5) / 2 are tried (a Fibonacci
+    lattice's generator is there)."""
+    if m < 3:
+        return 1
+    if m <= KOROBOV_FULL:
+        z = np.arange(1, m)
+    else:
+        golden = (3.0 - 5.0 ** 0.5) / 2.0
+        window = np.arange(-512, 513)
+        near = np.concatenate([round(m * golden) + window, round(m * (1 - golden)) + window])
+        z = np.unique(near[(near > 0) & (near < m)])
+    z = z[np.gcd(z, m) == 1]
+    h2 = np.arange(1, m // 2 + 1)
+    i = np.arange(1, m)
+    a = (np.minimum(i, m - i) / m) ** 2
+    key = np.empty(len(z))
+    step = max(1, (1 << 20) // m)
+    for lo in range(0, len(z), step):
+        zz = z[lo:lo + step]
+        h1 = np.outer(zz, h2) % m
+        h1 = np.minimum(h1, m - h1)
+        zaremba = np.minimum((np.maximum(h1, 1) * h2[None, :]).min(axis=1), m)
+        b = np.outer(zz, i) % m
+        b = np.minimum(b, m - b) / m
+        shortest = (a[None, :] + b * b).min(axis=1)  # <= 1/2 < 1: breaks ties only
+        key[lo:lo + step] = zaremba + shortest
+    return int(z[int(np.argmax(key))])
+
+
+def rank1_lattice(index: np.ndarray, m: int, shift: np.ndarray) -> np.ndarray:
+    """Points of a randomly shifted 2-D rank-1 (Korobov) lattice of exactly ``m`` points.
+
+    index : (M,) int in [0, m)   point number within its own set
+    shift : (M, 2)               random shift of the set the point belongs to
+    returns (M, 2) float64 in [0, 1): (i/m, i z/m) + shift mod 1, z = ``korobov_generator(m)``.
+    A lattice of fixed size has lower discrepancy than the first m points of the R_2 sequence:
+    the final gather's sampling noise on Cornell at 164 rays a receiver fell 1.34x in variance
+    (0.0102 -> 0.0088 of the reflected light; bench/RESULTS.md, issue 13 fourth session).
+    """
+    z = korobov_generator(int(m))
+    index = np.asarray(index, np.int64)
+    u = np.empty((len(index), 2))
+    u[:, 0] = (index + 0.5) / m + shift[:, 0]
+    u[:, 1] = ((index * z) % m + 0.5) / m + shift[:, 1]
+    u -= np.floor(u)
+    return u
 
 
 def triangle_points(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray, u: np.ndarray) -> np.ndarray:

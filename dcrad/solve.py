@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .accuracy import BIAS_SHARE, by_accuracy, final_plan, noise_floor, resolve
+from .accuracy import FINAL_BIAS_SHARE, by_accuracy, final_plan, noise_floor, resolve
 from .arrays import colsum, put_rows, rowsum, take_rows
 from .config import SolverConfig
 from .direct import (
@@ -637,7 +637,7 @@ class Solver:
             if self.target_error(est) <= cfg.accuracy:
                 return "accuracy"
             if self.final_pending():
-                if est.bias_refl <= BIAS_SHARE * cfg.accuracy:
+                if est.bias_refl <= FINAL_BIAS_SHARE * cfg.accuracy:
                     return "final_gather"  # the light is nearly all shot: gather it (``run``)
             elif noise_floor(est, cfg.accuracy):
                 return "noise_floor"

@@ -392,3 +392,32 @@ def test_bright_area_samples_keep_the_half_difference_honest(bright_box):
     measured = float(np.sqrt(g.var(axis=0, ddof=1).mean()))
     estimated = float(np.sqrt((0.25 * d * d).mean()))
     assert 1 / 1.15 < estimated / measured < 1.15, (estimated, measured)
+
+
+def test_korobov_lattice_is_the_fibonacci_lattice_and_integrates_a_disk_without_bias():
+    """sampling.rank1_lattice: at Fibonacci m the generator is the Fibonacci lattice's; each
+    coordinate takes every one of the m strata once; over random shifts it integrates a disk's
+    indicator (a discontinuous integrand like the gather's, area pi r^2 known) without bias and
+    with a smaller spread than the R2 sequence's first m points (what the final gather used)."""
+    from dcrad.sampling import korobov_generator, lattice, rank1_lattice
+
+    assert [korobov_generator(m) for m in (21, 34, 55, 89, 144)] == [8, 13, 21, 34, 55]
+    rng = np.random.default_rng(5)
+    m, sets, r = 89, 4000, 0.3
+    index = np.tile(np.arange(m), sets)
+    shift = np.repeat(rng.random((sets, 2)), m, axis=0)
+    u = rank1_lattice(index, m, shift)
+    assert u.min() >= 0.0 and u.max() < 1.0
+    for c in range(2):
+        strata = np.floor((u[:, c] - shift[:, c]) % 1.0 * m).astype(int).reshape(sets, m)
+        assert (np.sort(strata, axis=1) == np.arange(m)).all()
+
+    def disk(p):
+        return (((p - 0.5) ** 2).sum(axis=1) < r * r).reshape(sets, m).mean(axis=1)
+
+    truth = math.pi * r * r
+    kor = disk(u)
+    r2 = disk(lattice(index, shift, 2))
+    assert abs(kor.mean() - truth) < 4 * kor.std() / math.sqrt(sets)
+    assert abs(r2.mean() - truth) < 4 * r2.std() / math.sqrt(sets)
+    assert kor.std() < 0.95 * r2.std()  # 0.90 measured (variance 0.81)
