@@ -18,7 +18,6 @@ import dataclasses
 import json
 import logging
 import math
-import multiprocessing as mp
 import os
 import shutil
 import threading
@@ -26,7 +25,7 @@ import time
 import traceback
 import tracemalloc
 import uuid
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -49,13 +48,14 @@ from dcrad.divide import (
 )
 from dcrad.energy import rms_error
 from dcrad.errors import DcradError
-from dcrad.pipeline import divided_books, finish_run, live_view, output_views, prepare, scene_settings, views_of_table
+from dcrad.pipeline import divided_books, finish_run, live_view, output_views, prepare, scene_settings
 from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
 from dcrad.share import run_shared, shared_books, shares_possible
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import estimate_to_pb, ledger_to_pb
 
+from .ahead import ViewsAhead
 from .remote import NoWorkers, RemoteSubscene, WorkerPool
 from .shared import Cancelled, RemoteShares
 from .store import CheckpointWriter, JobRecord, JobStore, Resume, StoredPreview
@@ -135,14 +135,6 @@ class LivePreview:
         self._cost = time.perf_counter() - t0
         self.seconds += self._cost
         self._last = time.monotonic()
-
-
-def _lowest_priority() -> None:
-    """The views' process: nice 19 (it runs on what the workers leave)."""
-    try:
-        os.nice(19)
-    except OSError:
-        pass
 
 
 def background() -> None:
@@ -290,6 +282,7 @@ class Job:
     resume: Resume | None = None  #: checkpoints to resume from, after a coordinator restart
     #: (scene, patches, patch size, timings) from the upload's validation, for the job's first run
     prepared: tuple | None = field(default=None, repr=False)
+    ahead: ViewsAhead | None = field(default=None, repr=False)  #: the outputs' views' process (ahead.py)
     _waiters: list = field(default_factory=list)  #: (loop, asyncio.Event) of watchers
 
     def summary(self) -> pb.JobSummary:
@@ -531,6 +524,9 @@ class JobManager:
             job.curve.clear()  # a failed job frees its snapshots too
             if job.preview is not None:
                 job.preview.close()
+            if job.ahead is not None:  # done by now, unless the job failed or was cancelled
+                job.ahead.close()
+                job.ahead = None
             # one last message carrying the final state, so every watcher sees the end
             final = pb.Progress()
             if job.updates:
@@ -756,27 +752,22 @@ class JobManager:
 
     def _views_ahead(self, job: Job, scene, patches) -> Future:
         """The outputs' views (``pipeline.output_views(ahead=True)``: cameras, both views' primary hits,
-        the corner pairs: what does not depend on B), made while the workers solve in a process of
-        their own at nice 19 (``pipeline.views_of_table``): it runs on what the workers leave of the
-        CPUs and never holds this process's GIL.  (In a nice-10 thread here it did, while the job
-        streamed shares: the 8x8 office's shared solve took 23-24 s, against 20-22 s without the
-        views ahead and 18.4-19.5 s with them in this process.)  At 1.27M patches 7.6 s of the
-        outputs' 18.7 s came off the job's critical path, at 201k patches 3.0 s of 5.4 s."""
+        the corner pairs, the live preview's view: what does not depend on B), made while the workers
+        solve, in a process at nice 19 (ahead.py; a background thread if it cannot start).  At 1.27M
+        patches 7.6 s of the outputs' 18.7 s came off the job's critical path, at 201k 3.0 s of 5.4 s."""
         w, h = job.spec.preview_width or 640, job.spec.preview_height or 480
         try:
-            pool: Executor = ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn"),
-                                                 initializer=_lowest_priority)
-            future = pool.submit(views_of_table, patches.table_arrays(), list(patches.names), scene.camera, w, h,
-                                 self.preview_size)
+            job.ahead = ViewsAhead(patches, scene.camera, w, h, self.preview_size)
+            return job.ahead.future
         except (OSError, RuntimeError) as exc:  # no process to be had: a background thread instead
             log.warning("job %s: the outputs' views are made in a thread (%s)", job.id, exc)
-            pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"views-{job.id}")
 
-            def build():
-                background()
-                return output_views(scene, patches, w, h, ahead=True)
+        def build():
+            background()
+            return output_views(scene, patches, w, h, ahead=True)
 
-            future = pool.submit(build)
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"views-{job.id}")
+        future = pool.submit(build)
         pool.shutdown(wait=False)
         return future
 

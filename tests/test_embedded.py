@@ -110,3 +110,28 @@ def test_cluster_started_without_waiting_registers_or_stops_with_the_callers_err
             procs = [cluster.coordinator, *cluster.workers]
             raise RuntimeError("bad scene")
     assert len(procs) == 3 and all(p is not None and p.poll() is not None for p in procs)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_killed_coordinator_leaves_no_views_process(tmp_path):
+    """The outputs' views are made in a child of the coordinator (coordinator/ahead.py); SIGKILL the
+    coordinator mid-job and that child (and multiprocessing's helper) ends too."""
+    from coordinator import client
+    from coordinator.embedded import LocalCluster
+    from dcrad.pipeline import resolve_scene
+
+    path = resolve_scene("office", tmp_path)
+    with LocalCluster(workers=2, data=tmp_path / "data", web=False) as cluster:
+        assert cluster.coordinator is not None
+        client.submit(cluster.address, path, {"accuracy": 0.005}, {"subscenes": None}, (64, 48))
+        deadline = time.monotonic() + 60
+        kids: dict[int, str] = {}
+        while not kids and time.monotonic() < deadline:
+            kids = children_of(cluster.coordinator.pid)
+            time.sleep(0.05)
+        assert kids, "the job started no views process"
+        cluster.kill_coordinator()
+        deadline = time.monotonic() + 30
+        while any(alive(p, s) for p, s in kids.items()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [p for p, s in kids.items() if alive(p, s)]
