@@ -96,10 +96,16 @@ def _half_samples(patches: Patches, rows: np.ndarray, m: int, dims: int, rng: np
     u_pos = lattice((index * STRIDE) % m, np.repeat(shift[:, dims:], m, axis=0), 2)
     owner = np.repeat(np.arange(k), 2 * m)
     in_a = np.tile(np.repeat([True, False], m), k)
-    f = patches.faces[rows[owner]]
+    # per receiver, then per sample (triangle_points' arithmetic: the same numbers, fewer gathers)
+    f = patches.faces[rows]
     v = patches.vertices
-    n = patches.normal[rows[owner]]
-    points = triangle_points(v[f[:, 0]], v[f[:, 1]], v[f[:, 2]], u_pos) + ray_offset(patches) * n
+    v0 = v[f[:, 0]]
+    e1, e2 = v[f[:, 1]] - v0, v[f[:, 2]] - v0
+    n = patches.normal[rows][owner]
+    s = np.sqrt(u_pos[:, 0])
+    b1 = s * (1.0 - u_pos[:, 1])
+    b2 = s * u_pos[:, 1]
+    points = v0[owner] + b1[:, None] * e1[owner] + b2[:, None] * e2[owner] + ray_offset(patches) * n
     return u, owner, in_a, points, n
 
 
@@ -115,9 +121,9 @@ def gather_rays(patches: Patches, rows: np.ndarray, half: int, rng: np.random.Ge
     0.88% against R2's 1.02%.)
     """
     u_dir, owner, in_a, origins, n = _half_samples(patches, rows, half, 2, rng)
-    t, b = onb(n)
+    t, b = onb(patches.normal[rows])  # per receiver (row by row: the same frames)
     x, y, z = cosine_hemisphere_columns(u_dir[:, 0], u_dir[:, 1])
-    dirs = x[:, None] * t + y[:, None] * b + z[:, None] * n
+    dirs = x[:, None] * t[owner] + y[:, None] * b[owner] + z[:, None] * n
     return origins, dirs, owner, in_a
 
 
