@@ -7,10 +7,10 @@ reads the whole scene's light.  Dividing space would throw it away (the 8x8
 office at 2%: 307M rays on two workers against 48.7M in one process,
 bench/RESULTS.md).  A shared run keeps it and divides the work instead:
 
-1. **direct**: the receivers are split into runs along a Morton curve, 4 per
-   worker in sizes that halve from each round of k runs to the next
-   (``work_shares``: the workers take them big ones first as they come free, so
-   they finish together); each share gathers the exact direct light of its run
+1. **direct**: the receivers are split into runs along a Morton curve
+   (``work_shares``: SHARES_PER_WORKER a worker, in sizes that halve from each
+   round of k runs to the next, taken by the workers big ones first as they come
+   free); each share gathers the exact direct light of its run
    (``Solver.direct_pilot``: the cost is per receiver-light pair, not per ray, so
    splitting receivers is what divides it), its pilot first; the shadow rays left
    after the pilots go to every share's penumbrae at one rate (``direct.shared_rate``),
@@ -91,10 +91,13 @@ def receiver_shares(patches: Patches, k: int) -> list[np.ndarray]:
 
 #: a shared run over k > 1 workers splits its receivers into this many shares per worker, in
 #: sizes that halve from one round of k shares to the next (``work_shares``): the workers take
-#: them big ones first as they come free (coordinator/shared.py), so their last shares are small
-#: and they finish together (office 8x8, 2 equal shares: the direct and final gathers' shares
-#: ran 3.1 / 2.1 s and 7.7 / 6.8 s, 1.9 s of a worker idle per run)
-SHARES_PER_WORKER = 4
+#: them big ones first as they come free (coordinator/shared.py).  With two equal shares the
+#: office 8x8's direct and final gathers ran 3.1 / 2.1 s and 7.7 / 6.8 s on the two workers;
+#: 4 shares a worker evened them (within 0.4 s), but each share pays its own set-up (a Solver,
+#: the light polygons and lists, a FinalGather's copies of B and D): solves of 19.8 s (1 a
+#: worker), 20.2 s (2) and 20.7 s (4), three runs each, alternating (bench/RESULTS.md).  One
+#: a worker until that set-up is shared by a worker's shares.
+SHARES_PER_WORKER = 1
 
 
 def work_shares(patches: Patches, k: int) -> list[np.ndarray]:

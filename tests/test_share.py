@@ -33,6 +33,7 @@ from dcrad.share import (
     run_shared,
     tally_from_arrays,
     tally_to_arrays,
+    work_shares,
 )
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
@@ -83,6 +84,26 @@ def test_receiver_shares_split_every_receiver_once(table):
     assert np.array_equal(np.sort(every), np.flatnonzero(patches.rho.any(axis=1)))
     assert max(map(len, parts)) - min(map(len, parts)) <= 1
     assert all(np.all(np.diff(p) > 0) for p in parts)
+
+
+def test_work_shares_split_every_receiver_once_big_ones_first(table, monkeypatch):
+    """A worker's shares halve in size from one round of k to the next (the queue hands out the big
+    ones first), and together they are every receiver once, in sorted runs."""
+    import dcrad.share as share
+
+    patches, _ = table
+    rec = np.flatnonzero(patches.rho.any(axis=1))
+    assert [len(p) for p in work_shares(patches, 1)] == [len(rec)]
+    for per in (1, 4):
+        monkeypatch.setattr(share, "SHARES_PER_WORKER", per)
+        for k in (2, 3):
+            parts = work_shares(patches, k)
+            assert len(parts) == per * k
+            assert np.array_equal(np.sort(np.concatenate(parts)), rec)
+            assert all(np.all(np.diff(p) > 0) for p in parts)
+            sizes = np.array([len(p) for p in parts], float).reshape(per, k)
+            assert np.all(np.abs(sizes[1:] / sizes[:-1] - 0.5) < 0.01)  # each round half the one before
+            assert np.ptp(sizes, axis=1).max() <= 1
 
 
 def test_shared_run_meets_its_target_as_its_estimate_says(table, reference, shared_two):
