@@ -120,9 +120,10 @@ class OutputViews:
     built ahead (``output_views(ahead=True)``), also both views' primary hits and the corner
     smoothing's pairs, so that what is left once B is known is a gather and a sum.
 
-    A coordinator makes it in a child process while its workers solve (coordinator/ahead.py): at 1.27M patches the two Embree
-    scenes took 6.0 s and the automatic camera 1.6 s of the outputs' 18.7 s; at 201k patches the
-    two views' rays and the corner pairs were 3.0 s of the coordinator's 5.4 s of outputs.
+    A coordinator makes it in a child process while its workers solve (coordinator/ahead.py): at
+    1.27M patches the two Embree scenes took 6.0 s and the automatic camera 1.6 s of the outputs'
+    18.7 s; at 201k patches the two views' rays and the corner pairs were 3.0 s of the
+    coordinator's 5.4 s of outputs.
     """
 
     tracer: Tracer | None  #: None: built by the outputs if they trace (views made in another process)
