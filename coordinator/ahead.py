@@ -17,12 +17,13 @@ import logging
 import multiprocessing as mp
 import os
 import threading
-import time
 import traceback
 from concurrent.futures import Future
 
 from dcrad.errors import DcradError
 from dcrad.pipeline import views_of_table
+
+from .embedded import DEATHSIG_ENV, PARENT_ENV, die_with_parent
 
 log = logging.getLogger("dcrad.coordinator")
 
@@ -36,13 +37,9 @@ def _child(conn, parent: int, table: dict, names: list, camera: dict | None, wid
         os.nice(VIEWS_NICE)
     except OSError:
         pass
-
-    def watch() -> None:  # the coordinator is gone: so is this
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+    # the coordinator is gone: so is this (its parent-pid watchdog; no death signal, which would
+    # follow the job thread that started this process, not the coordinator)
+    die_with_parent({PARENT_ENV: str(parent), DEATHSIG_ENV: "0"})
     result: tuple[bool, object]
     try:
         result = (True, views_of_table(table, names, camera, width, height, live_size))

@@ -80,13 +80,19 @@ def shares_possible(config: SolverConfig, receivers: int) -> bool:
     return by_accuracy(config) and config.direct and 0 < receivers <= MAX_ANALYTIC_RECEIVERS
 
 
-def receiver_shares(patches: Patches, k: int) -> list[np.ndarray]:
-    """The receivers (patches with a reflectance) in k runs of equal count along a Morton curve
-    (sorted rows each): neighbouring receivers share a run, so a run's penumbra pilot sees its
-    neighbours' probes."""
+def _morton_runs(patches: Patches, weight: np.ndarray) -> list[np.ndarray]:
+    """The receivers (patches with a reflectance) in runs along a Morton curve, sized in proportion
+    to ``weight`` (sorted rows each): neighbouring receivers share a run, so a run's penumbra pilot
+    sees its neighbours' probes."""
     rec = np.flatnonzero(patches.rho.any(axis=1))
     order = rec[spatial_order(patches, rec)]
-    return [np.sort(part) for part in np.array_split(order, k)]
+    cuts = np.round(np.cumsum(weight)[:-1] / weight.sum() * len(order)).astype(np.int64)
+    return [np.sort(part) for part in np.split(order, cuts)]
+
+
+def receiver_shares(patches: Patches, k: int) -> list[np.ndarray]:
+    """The receivers in k Morton runs of equal count (``_morton_runs``)."""
+    return _morton_runs(patches, np.ones(k))
 
 
 #: a shared run over k > 1 workers splits its receivers into this many shares per worker, in
@@ -103,13 +109,9 @@ SHARES_PER_WORKER = 1
 def work_shares(patches: Patches, k: int) -> list[np.ndarray]:
     """The receivers of a shared run over k workers in ``SHARES_PER_WORKER`` x k Morton runs (sorted
     rows each; one run when k is 1): round r of k runs takes 2^-r as many receivers as the first."""
-    rec = np.flatnonzero(patches.rho.any(axis=1))
     if k <= 1:
-        return [rec]
-    order = rec[spatial_order(patches, rec)]
-    weight = np.repeat(0.5 ** np.arange(SHARES_PER_WORKER), k)
-    cuts = np.round(np.cumsum(weight)[:-1] / weight.sum() * len(order)).astype(np.int64)
-    return [np.sort(part) for part in np.split(order, cuts)]
+        return [np.flatnonzero(patches.rho.any(axis=1))]
+    return _morton_runs(patches, np.repeat(0.5 ** np.arange(SHARES_PER_WORKER), k))
 
 
 def replica_config(config: SolverConfig, k: int, index: int, patches: int) -> SolverConfig:
