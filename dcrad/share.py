@@ -8,7 +8,7 @@ office at 2%: 307M rays on two workers against 48.7M in one process,
 bench/RESULTS.md).  A shared run keeps it and divides the work instead:
 
 1. **direct**: the receivers are split into runs along a Morton curve
-   (``work_shares``: SHARES_PER_WORKER a worker, in sizes that halve from each
+   (``work_shares``: DIRECT_SHARES_PER_WORKER a worker, in sizes that halve from each
    round of k runs to the next, taken by the workers big ones first as they come
    free); each share gathers the exact direct light of its run
    (``Solver.direct_pilot``: the cost is per receiver-light pair, not per ray, so
@@ -25,8 +25,8 @@ bench/RESULTS.md).  A shared run keeps it and divides the work instead:
    outcomes, so the books close and the average's noise is the replicas' over k
    in the mean square, less the direct light's, which all share
    (``shared_noise``, ``Solver.target_error``).
-3. **gather**: the final gather of the average, split by receivers as in 1: each
-   share traces the full number of gather rays for its receivers
+3. **gather**: the final gather of the average, split by receivers as in 1 but one share a
+   worker (``SHARES_PER_WORKER``: its cost is even per receiver): each share traces the full number of gather rays for its receivers
    (``gather_share``; splitting the rays instead, k gathers of 1/k of them each,
    lost the stratification's gain: on the office 3x3, 62 rays a patch gave 2.40%
    where 124 gave 1.57%), and the shared run combines the sums
@@ -63,6 +63,7 @@ from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, top_up
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
            "tally_to_arrays", "tally_from_arrays", "shared_noise", "work_shares", "SHARES_PER_WORKER",
+           "DIRECT_SHARES_PER_WORKER",
            "REPLICA_SEED"]
 
 #: replica i seeds its random streams this much after replica i - 1 (passes.PASS_SEED's role)
@@ -95,23 +96,28 @@ def receiver_shares(patches: Patches, k: int) -> list[np.ndarray]:
     return _morton_runs(patches, np.ones(k))
 
 
-#: a shared run over k > 1 workers splits its receivers into this many shares per worker, in
-#: sizes that halve from one round of k shares to the next (``work_shares``): the workers take
-#: them big ones first as they come free (coordinator/shared.py).  With two equal shares the
-#: office 8x8's direct and final gathers ran 3.1 / 2.1 s and 7.7 / 6.8 s on the two workers;
-#: 4 shares a worker evened them (within 0.4 s), but each share pays its own set-up (a Solver,
-#: the light polygons and lists, a FinalGather's copies of B and D): solves of 19.8 s (1 a
-#: worker), 20.2 s (2) and 20.7 s (4), three runs each, alternating (bench/RESULTS.md).  One
-#: a worker until that set-up is shared by a worker's shares.
+#: a shared run over k > 1 workers splits its receivers into this many direct shares per worker,
+#: in sizes that halve from one round of k shares to the next (``work_shares``): the workers take
+#: them big ones first as they come free (coordinator/shared.py).  The direct light's cost per
+#: receiver varies with the lamps it sees and its penumbrae: on the office 8x8 the two Morton
+#: halves' pilot and gather took 4.77 and 3.25 CPU s.  Replaying measured share costs through
+#: the queue (2 workers; pilot then direct): 1 a worker 4.80 s, 2 4.18 s, 4 4.24 s, 8 4.51 s (a
+#: share's set-up is small, 8.05-8.69 CPU s in all) (bench/RESULTS.md, fifth session).
+DIRECT_SHARES_PER_WORKER = 2
+#: the final gather's cost is per receiver and even (8x8 office: two halves 5.85 / 5.85 CPU s,
+#: 8 shares 1.53-1.59 s), and each gather share pays a FinalGather's set-up (12.5 CPU s for 8
+#: shares, 13.7 s for 32, against 11.7 s for 2): one a worker.
 SHARES_PER_WORKER = 1
 
 
-def work_shares(patches: Patches, k: int) -> list[np.ndarray]:
-    """The receivers of a shared run over k workers in ``SHARES_PER_WORKER`` x k Morton runs (sorted
-    rows each; one run when k is 1): round r of k runs takes 2^-r as many receivers as the first."""
+def work_shares(patches: Patches, k: int, per_worker: int | None = None) -> list[np.ndarray]:
+    """The receivers of a shared run over k workers in ``per_worker`` (default
+    ``SHARES_PER_WORKER``) x k Morton runs (sorted rows each; one run when k is 1): round r of k
+    runs takes 2^-r as many receivers as the first."""
     if k <= 1:
         return [np.flatnonzero(patches.rho.any(axis=1))]
-    return _morton_runs(patches, np.repeat(0.5 ** np.arange(SHARES_PER_WORKER), k))
+    per = SHARES_PER_WORKER if per_worker is None else per_worker
+    return _morton_runs(patches, np.repeat(0.5 ** np.arange(per), k))
 
 
 def replica_config(config: SolverConfig, k: int, index: int, patches: int) -> SolverConfig:
@@ -373,8 +379,8 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     cfg = resolve(config, len(patches))
     t0 = time.perf_counter()
     emission = patches.emission.copy()
-    parts = work_shares(patches, k)
-    tallies = shares.direct(parts)
+    parts = work_shares(patches, k)  # the final gather's
+    tallies = shares.direct(work_shares(patches, k, DIRECT_SHARES_PER_WORKER))
     if any(t is None for t in tallies):
         return None
     direct = merged_direct(tallies, patches)

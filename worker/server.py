@@ -151,6 +151,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             yield chunk
 
     async def Share(self, request_iterator, context):
+        t_in = time.perf_counter()
         header, asm = await read_stream(request_iterator, "header")
         if header is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Share needs a header first")
@@ -167,8 +168,12 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                 raise ValueError(f"bad share: phase {header.phase!r}, index {header.index} of {header.count}")
             if header.scene:
                 table = {k[len("scene_"):]: v for k, v in arrays.items() if k.startswith("scene_")}
+                t_read = time.perf_counter()
                 patches = Patches.from_table(table, list(header.names))
                 self.scenes[job] = (patches, await asyncio.to_thread(Tracer, patches.triangles))
+                log.info("job %s: patch table of %d patches (%.0f MB) read in %.2f s, loaded in %.2f s", job,
+                         len(patches), sum(v.nbytes for v in table.values()) / 1e6, t_read - t_in,
+                         time.perf_counter() - t_read)
                 self.scene_locks.setdefault(job, asyncio.Lock())
         except KeyError as exc:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run share: the request has no array {exc}")
@@ -180,7 +185,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         cancelled = threading.Event()
         context.add_done_callback(lambda _: cancelled.set())
         async with self.scene_locks[job]:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             try:
                 rows = np.asarray(arrays.get("rows", np.zeros(0)), np.int64)
                 if len(rows) and (rows.min() < 0 or rows.max() >= len(patches)):
@@ -222,8 +227,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                                                                       f"the request has no array {exc}")
             except (DcradError, TypeError, ValueError) as exc:
                 await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {header.phase} share: {exc}")
-            log.info("job %s: %s share %d of %d in %.1f s", job, header.phase, header.index, header.count,
-                     time.perf_counter() - t0)
+            log.info("job %s: %s share %d of %d in %.2f s (%.2f CPU s)", job, header.phase, header.index,
+                     header.count, time.perf_counter() - t0, time.process_time() - c0)
         for chunk in arrays_to_chunks(out):
             yield chunk
 
