@@ -26,10 +26,10 @@ bench/RESULTS.md).  A shared run keeps it and divides the work instead:
    in the mean square, less the direct light's, which all share
    (``shared_noise``, ``Solver.target_error``).
 3. **gather**: the final gather of the average, split by receivers as in 1 but one share a
-   worker (``SHARES_PER_WORKER``: its cost is even per receiver): each share traces the full number of gather rays for its receivers
-   (``gather_share``; splitting the rays instead, k gathers of 1/k of them each,
-   lost the stratification's gain: on the office 3x3, 62 rays a patch gave 2.40%
-   where 124 gave 1.57%), and the shared run combines the sums
+   worker (``SHARES_PER_WORKER``: its cost is even per receiver): each share traces the full
+   number of gather rays for its receivers (``gather_share``; splitting the rays instead, k
+   gathers of 1/k of them each, lost the stratification's gain: on the office 3x3, 62 rays a
+   patch gave 2.40% where 124 gave 1.57%), and the shared run combines the sums
    (``final.FinalGather.solution``), topping the gather up while the estimate is
    above the target as a single run does (``solve.top_up``).
 
