@@ -581,8 +581,12 @@ class JobManager:
             # depend on it, only which worker waits at a barrier
             workers = self.pool.live()
             slots = placement([expected_work(s.patches) for s in subs], len(workers)) if workers else []
-            for i, h in enumerate(handles):
-                h.place(prefer=workers[slots[i]] if workers else None)
+            # all at once: a worker reads one subscene while it builds another's Embree scene, and
+            # the coordinator writes one's static file while it streams another (20x20 office,
+            # 4 subscenes: 4.8 s one after another)
+            with ThreadPoolExecutor(max_workers=len(handles), thread_name_prefix=f"place-{job.id}") as ex:
+                list(ex.map(lambda i: handles[i].place(prefer=workers[slots[i]] if workers else None),
+                            range(len(handles))))
             timings["setup_s"] = time.perf_counter() - t0  # partition, clip, load on the workers
             # after the loading on the workers, so as not to compete with it
             views = self._views_ahead(job, scene, patches)
@@ -774,8 +778,13 @@ class JobManager:
     @staticmethod
     def _views(future: Future):
         """The views built ahead, or None (they are built with the outputs) if that failed."""
+        t0 = time.perf_counter()
+        ready = future.done()
         try:
-            return future.result()
+            views = future.result()
+            if not ready:
+                log.info("the outputs waited %.1f s for the views made ahead", time.perf_counter() - t0)
+            return views
         except Exception:  # the outputs build their own; never fail a solved job over it
             log.warning("building the outputs' views ahead failed; the outputs build them\n%s",
                         traceback.format_exc())

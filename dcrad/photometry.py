@@ -135,18 +135,29 @@ def stats(lux: np.ndarray, area: np.ndarray | None = None) -> dict:
 
 
 def surface_stats(patches, lux: np.ndarray) -> list[dict]:
-    """``photometry.surfaces``: one entry per surface group (see surface_groups)."""
+    """``photometry.surfaces``: one entry per surface group (see surface_groups), as ``stats`` of
+    its patches.  One pass over the patches for all groups (a mask per group was 2.6 s of the
+    20x20 office's 6.1 s of outputs: hundreds of groups x 1.27M patches)."""
     names, group = surface_groups(patches, lux)
+    lux = np.asarray(lux, np.float64)
     lum = luminance_cd(patches.radiosity)
+    a = np.asarray(patches.area, np.float64)
+    m = len(names)
+    count = np.bincount(group, minlength=m)
+    area = np.bincount(group, a, m)
+    lux_a, lum_a, lux_sum = np.bincount(group, lux * a, m), np.bincount(group, lum * a, m), np.bincount(group, lux, m)
+    order = np.argsort(group, kind="stable")
+    used = np.flatnonzero(count)
+    starts = (np.cumsum(count) - count)[used]
+    lo, hi = np.full(m, 0.0), np.full(m, 0.0)
+    lo[used] = np.minimum.reduceat(lux[order], starts)
+    hi[used] = np.maximum.reduceat(lux[order], starts)
     out = []
-    for g, name in enumerate(names):
-        rows = np.flatnonzero(group == g)
-        if not len(rows):
-            continue
-        a = patches.area[rows]
-        entry = {"name": name, "area_m2": float(a.sum()), **stats(lux[rows], a),
-                 "L_avg_cd_m2": float((lum[rows] * a).sum() / a.sum()) if a.sum() > 0 else 0.0}
-        out.append(entry)
+    for g in used:
+        avg = float(lux_a[g] / area[g]) if area[g] > 0 else float(lux_sum[g] / count[g])
+        out.append({"name": names[g], "area_m2": float(area[g]), "E_avg_lux": avg, "E_min_lux": float(lo[g]),
+                    "E_max_lux": float(hi[g]), "uniformity": float(lo[g]) / avg if avg > 0 else 0.0,
+                    "L_avg_cd_m2": float(lum_a[g] / area[g]) if area[g] > 0 else 0.0})
     return out
 
 
