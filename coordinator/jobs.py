@@ -563,6 +563,10 @@ class JobManager:
         divide = self._divide(spec, min(SUBSCENES_PER_WORKER * live, subscene_limit(len(patches))))
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
         t0 = time.perf_counter()
+        # at nice 19 it takes the core the partition leaves idle, and little from the workers: started
+        # after the loading on the workers it had to finish after the solve (the 20x20 office's
+        # outputs waited 2.1 s for it)
+        views = self._views_ahead(job, scene, patches)
         # specs (arrays), not Subscenes: the coordinator builds no Embree scene for them
         subs, boundaries, parents, part = subscene_specs(patches, config, divide)
         job.subscenes = len(subs)
@@ -588,8 +592,6 @@ class JobManager:
                 list(ex.map(lambda i: handles[i].place(prefer=workers[slots[i]] if workers else None),
                             range(len(handles))))
             timings["setup_s"] = time.perf_counter() - t0  # partition, clip, load on the workers
-            # after the loading on the workers, so as not to compete with it
-            views = self._views_ahead(job, scene, patches)
             job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
             # the pieces' patches are on the workers (and in static-K.ck): keep their areas only
             pieces: list[Any] = [PieceArea(s.patches.area) for s in subs]
