@@ -18,9 +18,10 @@ the diagonal): it is inside a wall.  A plane inside an interior wall is open
 only at its doorways; a plane across a room is open almost everywhere.
 
 Candidates on an axis: ``candidates`` even positions between the 25 % and 75 %
-work quantiles (and area quantiles, when the work is not area), plus the midpoints between consecutive distinct coordinates of
-surfaces perpendicular to the axis in that range (wall centres, which an even
-grid steps over).  No plane is placed within ``1e-4 * diagonal`` of a surface
+work quantiles (and area quantiles, when the work is not area), plus the
+midpoints between consecutive distinct coordinates of surfaces perpendicular to
+the axis in that range (wall centres, which an even grid steps over; the most
+surface area beside them first).  No plane is placed within ``1e-4 * diagonal`` of a surface
 lying in (or nearly in) it: such offsets move to the nearest free position.
 
 Explicit partitions: ``planes`` form a grid (each splits every cell it
