@@ -666,11 +666,11 @@ WORK_PER_PATCH_W = 4.5e-4
 
 #: what the automatic cut balances (partition's ``work``): "light", a patch share plus twice the
 #: emitted share (partition.LIGHT_WEIGHT).  By area, the 20x20 office's 16 cells held 7 to 16 lit
-#: rooms and the slowest cell's iterates took 1.27-1.39x the mean (their CPU s follow their lamps'
-#: W, correlation 0.99); by light 12 or 13, and its rays 1.10-1.12x the mean (bench/RESULTS.md,
-#: issue 14, fifth session).  Not by lamps alone ("expected" work): where one room holds all the
-#: lamps (the 1x2 office of tests/test_divide.py) that cut the lit room in half rather than
-#: follow the wall; the patch share keeps the wall (score 0.85 against 1.0 across the room)
+#: rooms and the slowest cell's iterates took 1.24-1.39x the mean (their CPU s follow their lamps'
+#: W, correlation 0.99); by light 12 or 13, and 1.10-1.12x (bench/RESULTS.md, issue 14, fifth
+#: session).  Not by lamps alone (W emitted + WORK_PER_PATCH_W a patch, tried): where one room
+#: holds all the lamps (the 1x2 office of tests/test_divide.py) that cut the lit room in half
+#: rather than follow the wall; the patch share keeps the wall (score 0.83 against 1.0 across)
 CUT_WORK = "light"
 
 

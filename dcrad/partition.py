@@ -118,7 +118,7 @@ LIGHT_WEIGHT = 2.0
 #: a cell of kk cells may split into k_lo + (kk - k_lo) with k_lo / kk this far from 1/2 (kk >= 8),
 #: whichever fits the work below the plane best: the plane stays in a wall and the count follows
 #: the work (20x20 office by light, k=16: the best wall halving the building held 0.57 of the
-#: lamps, so all 8 cells on that side carried 14% more than their share; 9 + 7 carries 1%)
+#: work, so all 8 cells on that side carried 14% more than their share; 9 + 7 carries 1-2%)
 SPLIT_SLACK = 0.125
 
 
