@@ -9,6 +9,9 @@ and out over its one link), with 4 round trips per barrier (iterate, collect, de
 checkpoint).  Predicted time on k machines = sum over barriers of (critical path +
 exchange); speed-up = the one-process solve's time / that; efficiency = speed-up / k.
 Partition, clipping and loading are left out of the prediction (printed separately).
+A second table puts k subscenes on m machines (``--machines``): kept where ``divide.placement``
+puts them by expected work (as the coordinator does), or assigned afresh at each barrier by the
+power each holds, paying for the moves; the critical path is then the busiest machine's.
 
 Prints figures; asserts nothing.  Run, e.g. (the issue-14 figures in bench/RESULTS.md)::
 
