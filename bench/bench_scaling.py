@@ -9,6 +9,9 @@ and out over its one link), with 4 round trips per barrier (iterate, collect, de
 checkpoint).  Predicted time on k machines = sum over barriers of (critical path +
 exchange); speed-up = the one-process solve's time / that; efficiency = speed-up / k.
 Partition, clipping and loading are left out of the prediction (printed separately).
+A second table puts k subscenes on m machines (``--machines``): kept where ``divide.placement``
+puts them by expected work (as the coordinator does), or assigned afresh at each barrier by the
+power each holds, paying for the moves; the critical path is then the busiest machine's.
 
 Prints figures; asserts nothing.  Run, e.g. (the issue-14 figures in bench/RESULTS.md)::
 
@@ -29,27 +32,53 @@ from pathlib import Path
 
 import numpy as np
 
+import dcrad.divide
 import scenes
 from dcrad.config import DivideConfig, SolverConfig
-from dcrad.divide import SequentialExecutor, expected_work, placement, run_divided, subscene_specs
+from dcrad.divide import (
+    SequentialExecutor,
+    checkpoint_arrays,
+    expected_work,
+    placement,
+    run_divided,
+    subscene_arrays,
+    subscene_specs,
+)
 from dcrad.pipeline import prepare
 from dcrad.solve import Solver
 
 
-def on_machines(per: np.ndarray, m: int, first) -> np.ndarray:
-    """(barriers,) s: k subscenes on m machines, assigned at each barrier by the work each did at
-    the previous one (longest first, to the least loaded machine; ``first`` before any barrier)."""
-    out = np.zeros(per.shape[1])
-    guess = np.asarray(first, np.float64)
-    for b in range(per.shape[1]):
+def on_machines(per: np.ndarray, m: int, pending: np.ndarray, moving: np.ndarray, static: np.ndarray,
+                bw: float) -> tuple[np.ndarray, np.ndarray]:
+    """Dynamic subscene reconfiguration: k subscenes on m machines, assigned afresh at each
+    barrier by the work each has pending (longest first to the least loaded machine: LPT).
+
+    per (k, barriers) CPU s; pending (k, barriers) W each held when the barrier's iterates began
+    (its unshot and in-flight power: what the coordinator knows from the states); moving (k,)
+    bytes of a subscene's changing state (its checkpoint), static (k,) bytes of its patches and
+    boundaries.  A subscene that changes machine sends its state over the coordinator's link,
+    and its patches too the first time it lands on a machine.
+    Returns ((barriers,) critical path s, (barriers,) s of moves).
+    """
+    k, n = per.shape
+    crit, moves = np.zeros(n), np.zeros(n)
+    where = np.full(k, -1)
+    held = np.zeros((k, m), bool)
+    for b in range(n):
         load, est = np.zeros(m), np.zeros(m)
-        for i in np.argsort(-guess, kind="stable"):
+        slot = np.empty(k, np.int64)
+        for i in np.argsort(-pending[:, b], kind="stable"):
             j = int(np.argmin(est))
-            est[j] += guess[i]
+            est[j] += pending[i, b]
             load[j] += per[i, b]
-        out[b] = load.max()
-        guess = per[:, b]
-    return out
+            slot[i] = j
+        moved = (where >= 0) & (slot != where)
+        fresh = moved & ~held[np.arange(k), slot]
+        moves[b] = (moving[moved].sum() + static[fresh].sum()) / bw
+        held[np.arange(k), slot] = True
+        where = slot
+        crit[b] = load.max()
+    return crit, moves
 
 
 def placed(per: np.ndarray, slots: list[int], m: int) -> np.ndarray:
@@ -69,8 +98,10 @@ class Timed:
         self.rays: list[int] = []  # per barrier
         self.sent: list[int] = []  # bytes collected per barrier
         self.received: list[int] = []  # bytes delivered per barrier
+        self.pending: list[float] = []  # W held (unshot + in flight) as each barrier's iterates began
 
     def iterate(self, n, plan=None):
+        self.pending.append(float(self.sub.ledger.held().sum()))  # what the coordinator knows
         t0 = time.process_time()
         rays = self.sub.iterate(n, plan)
         self.seconds.append(time.process_time() - t0)
@@ -109,8 +140,13 @@ def main(argv=None) -> int:
                     help="most batches per subscene between barriers (adaptive doIterations)")
     ap.add_argument("--gbps", type=float, default=1.0, help="link bandwidth, Gbit/s")
     ap.add_argument("--latency-ms", type=float, default=0.5, help="one round trip, ms")
+    ap.add_argument("--machines", default="2,16", help="also put k subscenes on m machines, for each m < k")
+    ap.add_argument("--cut", choices=("light", "area"), default=dcrad.divide.CUT_WORK,
+                    help="what the automatic cut balances (divide.CUT_WORK; area: as before issue 14's fifth session)")
     ap.add_argument("--service", action="store_true", help="also measure dcrad solve --workers 0 / 2")
     args = ap.parse_args(argv)
+    machines = [int(x) for x in args.machines.split(",") if x]
+    dcrad.divide.CUT_WORK = args.cut
 
     folder = Path(tempfile.mkdtemp())
     path = scenes.write_builtin("office", folder, rows=args.rows, cols=args.cols)
@@ -121,7 +157,7 @@ def main(argv=None) -> int:
     print(f"office {args.rows}x{args.cols}, patch size {args.patch_size} m; tol {args.tol}, "
           f"{args.rays_per_power:.3g} rays per emitted power, ray budget {args.max_rays or 'none'}, "
           f"min rays {args.min_rays}, direct light {'gathered at k=1' if args.direct else 'shot'}; "
-          f"link {args.gbps:g} Gbit/s, {args.latency_ms:g} ms round trip, coordinator relays")
+          f"link {args.gbps:g} Gbit/s, {args.latency_ms:g} ms round trip, coordinator relays; cut by {args.cut}")
     _, p, _ = prepare(path, args.patch_size)
     print(f"{len(p)} patches", flush=True)
     t0 = time.process_time()
@@ -131,9 +167,9 @@ def main(argv=None) -> int:
     rays1 = one.stats.rays
     print(f"k=1 (one process): {t1:.1f} CPU s, {rays1:,d} rays, residual {one.residual():.3g}", flush=True)
     head = (f"{'k':>3} {'setup s':>7} {'barriers':>8} {'rays/k1':>7} {'crit s':>7} {'sum s':>7} {'balance':>7} "
-            f"{'MB/barrier':>10} {'xchg s':>7} {'pred s':>7} {'speed-up':>8} {'eff':>5} {'on 2':>6} "
-            f"{'placed 2':>8} {'2: crit s':>9} {'2: Mrays':>8} {'2: ideal':>8}")
+            f"{'rays bal':>8} {'MB/barrier':>10} {'xchg s':>7} {'pred s':>7} {'speed-up':>8} {'eff':>5}")
     print(head)
+    rows = []  # (k, m, ...) for the table of k subscenes on m machines
     for k in [int(x) for x in args.ks.split(",") if int(x) > 1]:
         _, q, _ = prepare(path, args.patch_size)
         t0 = time.perf_counter()
@@ -143,28 +179,59 @@ def main(argv=None) -> int:
         per_barrier = DivideConfig(max_iterations=args.max_iterations).batches_per_barrier
         run = run_divided(handles, boundaries, cfg, per_barrier, SequentialExecutor())
         per = np.array([h.seconds for h in handles])  # (k, barriers)
+        rays = np.array([h.rays for h in handles], np.float64)
         moved = np.array([h.sent for h in handles]).sum(axis=0) if run.barriers else np.zeros(1)
         crit = per.max(axis=0)
         xchg = 4 * rtt + 2 * moved / bw
         pred = float((crit + xchg).sum())
-        balance = float(per.sum(axis=1).max() / per.sum(axis=1).mean())  # slowest subscene / mean
+        total = per.sum(axis=1)
+        balance = float(total.max() / total.mean())  # slowest subscene / mean
         speed = t1 / pred
-        two = t1 / float((on_machines(per, 2, [len(h.sub.patches) for h in handles]) + xchg).sum())
-        slots = placement([expected_work(s.patches) for s in specs], 2)
-        crit2 = placed(per, slots, 2)
-        rays2 = placed(np.array([h.rays for h in handles], np.float64), slots, 2)
         print(f"{k:3d} {setup:7.1f} {run.barriers:8d} {run.snapshots[-1].rays / rays1:7.2f} "
-              f"{crit.mean():7.3f} {per.sum():7.1f} {balance:7.2f} {moved.mean() / 1e6:10.2f} "
-              f"{xchg.sum():7.2f} {pred:7.2f} {speed:8.2f} {speed / k:5.0%} {two:6.2f} "
-              f"{t1 / float((crit2 + xchg).sum()):8.2f} {crit2.sum():9.2f} {rays2.sum() / 1e6:8.1f} "
-              f"{per.sum() / 2:8.2f}", flush=True)
+              f"{crit.mean():7.3f} {per.sum():7.1f} {balance:7.2f} {rays.sum(1).max() / rays.sum(1).mean():8.2f} "
+              f"{moved.mean() / 1e6:10.2f} {xchg.sum():7.2f} {pred:7.2f} {speed:8.2f} {speed / k:5.0%}", flush=True)
+        # why the slowest is slow: its lamps, its patches, its rays against the mean
+        lamps = np.array([float(sp.patches.emitted_power.sum()) for sp in specs])
+        size = np.array([len(sp.patches) for sp in specs], np.float64)
+        i = int(np.argmax(total))
+        print(f"    slowest: cell {handles[i].cell}, lamps {lamps[i] / lamps.mean():.2f}x the mean, patches "
+              f"{size[i] / size.mean():.2f}x, rays {rays[i].sum() / rays.sum(1).mean():.2f}x; lamps per cell "
+              f"{lamps.min():.0f}-{lamps.max():.0f} W; correlation of CPU s with lamps "
+              f"{np.corrcoef(total, lamps)[0, 1]:.2f}, with patches {np.corrcoef(total, size)[0, 1]:.2f}")
+        moving = np.array([sum(v.nbytes for v in checkpoint_arrays(h.sub).values()) for h in handles], np.float64)
+        static = np.array([sum(np.asarray(v).nbytes for v in subscene_arrays(h.sub).values()) for h in handles],
+                          np.float64)
+        pending = np.array([h.pending for h in handles])
+        work = [expected_work(sp.patches) for sp in specs]
+        for m in machines:
+            if m >= k:
+                continue
+            slots = placement(work, m)
+            crit_p = placed(per, slots, m)
+            rays_p = placed(rays, slots, m)
+            crit_d, moves = on_machines(per, m, pending, moving, static, bw)
+            pred_p = float((crit_p + xchg).sum())
+            pred_d = float((crit_d + xchg + moves).sum())
+            ideal = float((per.sum(axis=0) / m + xchg).sum())
+            rows.append((k, m, pred_p, crit_p.sum(), rays_p.sum() / 1e6, pred_d, moves.sum(), ideal))
         del handles, specs
     print("crit s: mean per-barrier critical path (slowest subscene); sum s: all subscenes' iterate time; "
-          "balance: slowest subscene's total / the mean; MB/barrier: crossing rays handed over; on 2: "
-          "predicted speed-up of these k subscenes on 2 machines, assigned at each barrier by the "
-          "previous barrier's work (over-decomposition); placed 2: the same, each subscene kept on the machine "
-          "divide.placement gives it by expected work (its lamps); 2: crit s / Mrays: that placement's critical "
-          "path summed over barriers, in CPU s and in rays; 2: ideal: all iterates' CPU s / 2")
+          "balance: slowest subscene's total / the mean (rays bal: the same in rays, free of the machine's "
+          "drift); MB/barrier: crossing rays handed over")
+    if rows:
+        print(f"\nk subscenes on m machines (over-decomposed): {'k':>3} {'m':>3} {'placed s':>8} {'speed-up':>8} "
+              f"{'eff':>5} {'crit s':>7} {'Mrays':>6} {'dynamic s':>9} {'speed-up':>8} {'eff':>5} {'moves s':>7} "
+              f"{'ideal s':>7} {'eff':>5}")
+        for k, m, pred_p, crit_p, mrays, pred_d, moves, ideal in rows:
+            print(f"{'':45}{k:3d} {m:3d} {pred_p:8.2f} {t1 / pred_p:8.2f} {t1 / pred_p / m:5.0%} {crit_p:7.2f} "
+                  f"{mrays:6.1f} {pred_d:9.2f} {t1 / pred_d:8.2f} {t1 / pred_d / m:5.0%} {moves:7.2f} {ideal:7.2f} "
+                  f"{t1 / ideal / m:5.0%}")
+        print("placed: each subscene kept on the machine divide.placement gives it by expected work (its lamps and "
+              "patches; what the coordinator does), plus the exchange; crit s / Mrays: its critical path summed "
+              "over barriers, in CPU s and rays; dynamic: assigned afresh at each barrier by the W each subscene "
+              "holds (unshot and in flight), plus the exchange and the moves (a moved subscene's checkpoint over "
+              "the link, and its patches the first time on a machine); ideal: all iterates' CPU s / m plus the "
+              "exchange (perfect balance)")
     if args.service:
         common = [f"office:rows={args.rows},cols={args.cols}", "--patch-size", str(args.patch_size),
                   "--tol", str(args.tol), "--rays-per-power", str(args.rays_per_power), "--width", "64",

@@ -664,6 +664,15 @@ SUBSCENES_PER_WORKER = 2
 #: for its 25k patches, the lit ones 0.030 s per W of their lamps, so a patch ~ 4.5e-4 W)
 WORK_PER_PATCH_W = 4.5e-4
 
+#: what the automatic cut balances (partition's ``work``): "light", a patch share plus twice the
+#: emitted share (partition.LIGHT_WEIGHT).  By area, the 20x20 office's 16 cells held 7 to 16 lit
+#: rooms and the slowest cell's iterates took 1.24-1.39x the mean (their CPU s follow their lamps'
+#: W, correlation 0.99); by light 12 or 13, and 1.10-1.12x (bench/RESULTS.md, issue 14, fifth
+#: session).  Not by lamps alone (W emitted + WORK_PER_PATCH_W a patch, tried): where one room
+#: holds all the lamps (the 1x2 office of tests/test_divide.py) that cut the lit room in half
+#: rather than follow the wall; the patch share keeps the wall (score 0.83 against 1.0 across)
+CUT_WORK = "light"
+
 
 def expected_work(patches: Patches) -> float:
     """A subscene's expected iterate work before it runs, in W of emitted power equivalents.
@@ -792,10 +801,14 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     if planes is None and boxes is None:
         check_subscenes(divide.subscenes, len(patches))
     config = resolve(config, len(patches))  # the job's ray density: from its patch count
-    # balanced by area: work="light" (partition.LIGHT_WEIGHT) evened the 8x8 office's lamps but
-    # shortened its critical path by 2%, and where one room holds all the lamps it cut across
-    # the lit room instead of through the doorway wall (all its work quantiles lie in that room)
-    part = partition(patches, divide.subscenes, planes=planes, boxes=boxes)
+    # balanced by light (CUT_WORK): a subscene's iterates cost in proportion to its lamps, and
+    # cells of equal area differ in lamps.  Binned twins keep the area cut: by light, the cut
+    # moves toward the lamps, and binned twins blur the light that crosses open space there
+    # (furnace box, k=2: a vertical plane under the light, RMS error 1.54x the unsplit noise
+    # against below 1.5x with the area's horizontal one); exact boundaries forward it unchanged
+    work = CUT_WORK if divide.mode == "exact" else "area"
+    part = partition(patches, divide.subscenes, planes=planes, boxes=boxes,
+                     **({"work": work} if planes is None and boxes is None else {}))
     pieces = clip(patches, part)
     # Portal cells must be small next to walls and doorways: re-emitted twin light
     # starts anywhere in its cell, and the part of a cell inside a wall loses it
