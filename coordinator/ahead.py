@@ -7,11 +7,11 @@ leave of the CPUs and never holds the coordinator's GIL.  (In a nice-10 thread o
 coordinator it did, while the job streamed shares: the 8x8 office's shared solve took
 23-24 s, against 20-22 s without the views ahead and 18.4-20 s with them in a process.)
 
-The child is ``nice -n 19 python -m coordinator.ahead``, started from a thread: the patch table
-goes down its stdin and the views come back on its stdout (pickles).  It is not a
-multiprocessing "spawn" child: that one re-imports the coordinator's main module at nice 0,
-and ``Process.start`` blocked the job until the child had read its arguments: 0.27 s of the
-8x8 office's start, with the workers' Embree builds slowed beside it (0.51 s against 0.35 s).
+The child is ``python -m coordinator.ahead``: it imports what it needs, lowers itself to nice
+19, then reads the patch table from its stdin and writes the views to its stdout (pickles,
+from a thread of the coordinator).  It is not a multiprocessing "spawn" child: that one
+re-imported the coordinator's main module, and ``Process.start`` blocked the job until the
+child had read its arguments: 0.27 s of the 8x8 office's start.
 
 The child ends once it has sent its one result, when ``close()`` is called, or when the
 coordinator is gone (its parent pid changes: a SIGKILLed coordinator leaves nothing).
@@ -22,7 +22,6 @@ from __future__ import annotations
 import logging
 import os
 import pickle
-import shutil
 import subprocess
 import sys
 import threading
@@ -45,18 +44,19 @@ def _child() -> int:
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # anything printed goes to the log, not into the result
     sys.stdout = sys.stderr
-    try:
-        if os.nice(0) < VIEWS_NICE:  # started without nice(1)
-            os.nice(VIEWS_NICE - os.nice(0))
-    except OSError:
-        pass
     # the coordinator is gone: so is this (its parent-pid watchdog; no death signal, which would
     # follow the job thread that started this process, not the coordinator)
     die_with_parent()
     result: tuple[bool, object]
     try:
+        # imported at the coordinator's priority (about 0.6 CPU s): at nice 19 from the start the
+        # views came too late for a small job's first live previews, which then formed their own
         from dcrad.pipeline import views_of_table  # noqa: PLC0415 - only the child needs it
 
+        try:
+            os.nice(VIEWS_NICE)
+        except OSError:
+            pass
         table, names, camera, width, height, live_size = pickle.load(sys.stdin.buffer)
         result = (True, views_of_table(table, names, camera, width, height, live_size))
         del table
@@ -72,9 +72,6 @@ class ViewsAhead:
 
     def __init__(self, patches, camera: dict | None, width: int, height: int, live_size: tuple[int, int]):
         cmd = [sys.executable, "-m", "coordinator.ahead"]
-        nice = shutil.which("nice")
-        if nice:
-            cmd = [nice, "-n", str(VIEWS_NICE), *cmd]
         env = dict(os.environ, **{PARENT_ENV: str(os.getpid()), DEATHSIG_ENV: "0"})
         self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
         self.future: Future = Future()

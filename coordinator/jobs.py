@@ -78,9 +78,10 @@ class LivePreview:
     """Preview PNGs of the assembled radiosity, for the status page.
 
     ``due()`` is true at most once per ``interval`` seconds, and only after
-    ``1 / PREVIEW_SHARE`` times the last render's duration (a 4 s render of a
-    million patches waits 200 s), so previews cost at most 2% of the solve's wall
-    time; one more shows the final state.  Renders run in the job's
+    ``1 / PREVIEW_SHARE`` times the last render's shading (a 4 s render of a
+    million patches waits 200 s; forming the view and corner pairs once is not
+    counted), so previews cost at most 2% of the solve's wall time; the result's
+    own preview shows the final state.  Renders run in the job's
     ``BarrierDisplay`` thread, never in the barrier loop.  ``current`` is (version, barrier, png
     bytes), replaced atomically; version 0 means no preview yet.  A failing render is logged and turns
     previews off; it never fails the job.
@@ -117,7 +118,7 @@ class LivePreview:
     def render(self, b: np.ndarray, barrier: int) -> None:
         if self._broken:
             return
-        t0 = time.perf_counter()
+        t0 = t_shade = time.perf_counter()
         try:
             path = self.folder / "preview-live.png"
             if (self._view is None or self.smoother is None) and self.ahead is not None and self.ahead.done():
@@ -127,13 +128,17 @@ class LivePreview:
             if self._view is None or self.smoother is None:  # the visible patches' corners only
                 self._view = live_view(self.scene, self.patches, *self.size)
                 self.smoother = render.CornerSmoother(self.patches, rows=np.unique(self._view.patch))
+            t_shade = time.perf_counter()  # what each preview costs from now on (the view is kept)
             export.write_png(path, render.tonemap(render.shade_view(self._view, self.smoother.apply(b))))
             self.current = (self.current[0] + 1, barrier, path.read_bytes())
         except Exception:  # a preview must never stop a solve
             self._broken = True
             log.warning("preview rendering failed; no more previews for this job\n%s", traceback.format_exc())
-        self._cost = time.perf_counter() - t0
-        self.seconds += self._cost
+        # the next preview waits on this one's shading, not on the one-off view and corner pairs: a
+        # first render that formed them (1 s on the 2x3 office, the views process not done yet) held
+        # the next one back 50 s
+        self._cost = time.perf_counter() - t_shade
+        self.seconds += time.perf_counter() - t0
         self._last = time.monotonic()
 
 
@@ -151,16 +156,18 @@ class BarrierDisplay:
     """What the status page shows, kept off the barrier loop: assemble B, record the error
     curve, render previews.
 
-    ``offer`` (in the job thread, at a barrier) only stores the latest state and
-    returns; a daemon thread does the work.  States it had no time for are skipped:
-    the curve keeps geometrically spaced times and previews are rate-limited anyway.
-    ``close`` finishes the pending state and ends the thread.
+    ``offer`` (in the job thread, at a barrier) only queues the state and returns; a
+    daemon thread does the work: every state goes to the error curve (which keeps
+    geometrically spaced times), the latest to the preview when one is due.  (Keeping
+    only the latest state lost a barrier from the curve while a preview rendered.)
+    ``close`` finishes the pending states and ends the thread.
     """
 
     def __init__(self, assemble_b, curve: "ErrorCurve", preview: LivePreview, count):
         self.assemble_b, self.curve, self.preview, self.count = assemble_b, curve, preview, count
         self.seconds = 0.0  #: s of display work (assembly, curve, previews)
-        self._slot: tuple[float, int, np.ndarray] | None = None  # (elapsed, barrier, values)
+        self.cpu_seconds = 0.0  #: CPU s of it (its thread's: at nice 10 its wall s overstate it)
+        self._queue: list[tuple[float, int, np.ndarray]] = []  # (elapsed, barrier, values)
         self._closed = False
         self._cv = threading.Condition()
         self._thread = threading.Thread(target=self._loop, name="barrier-display", daemon=True)
@@ -169,27 +176,29 @@ class BarrierDisplay:
     def offer(self, elapsed: float, barrier: int, values: np.ndarray) -> None:
         """values: the subscenes' radiosity at this barrier, concatenated (a copy the thread owns)."""
         with self._cv:
-            self._slot = (elapsed, barrier, values)
+            self._queue.append((elapsed, barrier, values))
             self._cv.notify()
 
     def _loop(self) -> None:
         background()
         while True:
             with self._cv:
-                self._cv.wait_for(lambda: self._slot is not None or self._closed)
-                if self._slot is None:
+                self._cv.wait_for(lambda: bool(self._queue) or self._closed)
+                if not self._queue:
                     return
-                (elapsed, barrier, values), self._slot = self._slot, None
-            t0 = time.perf_counter()
-            try:
-                b = self.assemble_b(values)
-                self.curve.record(elapsed, barrier, b)
-                if self.preview.due():
-                    self.preview.render(b, barrier)
-                    self.count(previews=1)
-            except Exception:  # the display must never stop a solve
-                log.warning("live display failed at barrier %d\n%s", barrier, traceback.format_exc())
-            self.seconds += time.perf_counter() - t0
+                todo, self._queue = self._queue, []
+            for i, (elapsed, barrier, values) in enumerate(todo):
+                t0, c0 = time.perf_counter(), time.thread_time()
+                try:
+                    b = self.assemble_b(values)
+                    self.curve.record(elapsed, barrier, b)
+                    if i == len(todo) - 1 and self.preview.due():
+                        self.preview.render(b, barrier)
+                        self.count(previews=1)
+                except Exception:  # the display must never stop a solve
+                    log.warning("live display failed at barrier %d\n%s", barrier, traceback.format_exc())
+                self.seconds += time.perf_counter() - t0
+                self.cpu_seconds += time.thread_time() - c0
 
     def close(self) -> None:
         with self._cv:
@@ -642,10 +651,8 @@ class JobManager:
             del unshot
             parents.clear()  # assembled: the outputs need the patch table only
             pieces.clear()
-            if job.preview.barrier != run.barriers:  # always show the final state
-                job.preview.render(patches.radiosity, run.barriers)
-                self.count(previews=1)
-            job.preview.close()  # its Embree scene goes before the outputs are written
+            shown = job.preview
+            shown.close()  # its view goes before the outputs; the final state's preview is theirs
             job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), run.barriers)
             timings["solve_s"] = run.wall_seconds
             books = divided_books(run, patches, config, boundaries, part, divide, timings)
@@ -657,6 +664,7 @@ class JobManager:
                 "rpc_seconds": [h.rpc_seconds for h in handles],
                 "preview_seconds": job.preview.seconds,
                 "display_seconds": display.seconds,
+                "display_cpu_seconds": display.cpu_seconds,
                 "checkpoints": {k: v for k, v in writer.stats.items() if k != "per_barrier"},
             }
             if resume is not None:
@@ -673,6 +681,8 @@ class JobManager:
                                     spec.preview_height or 480, extra={"error_curve": self.curve_dict(job)},
                                     views=self._views(views))
             mem("outputs")
+            if shown.barrier != run.barriers:  # the status page shows the result's own preview (not rendered twice)
+                self._final_preview(job, run.barriers)
             job.residual = run.ledger.residual()
             job.state = "cancelled" if run.stopped_by == "stopped" else "done"
         finally:
