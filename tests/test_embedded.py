@@ -115,7 +115,7 @@ def test_cluster_started_without_waiting_registers_or_stops_with_the_callers_err
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_a_killed_coordinator_leaves_no_views_process(tmp_path):
     """The outputs' views are made in a child of the coordinator (coordinator/ahead.py); SIGKILL the
-    coordinator mid-job and that child (and multiprocessing's helper) ends too."""
+    coordinator mid-job and that child ends too."""
     from coordinator import client
     from coordinator.embedded import LocalCluster
     from dcrad.pipeline import resolve_scene
