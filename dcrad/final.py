@@ -96,16 +96,11 @@ def _half_samples(patches: Patches, rows: np.ndarray, m: int, dims: int, rng: np
     u_pos = lattice((index * STRIDE) % m, np.repeat(shift[:, dims:], m, axis=0), 2)
     owner = np.repeat(np.arange(k), 2 * m)
     in_a = np.tile(np.repeat([True, False], m), k)
-    # per receiver, then per sample (triangle_points' arithmetic: the same numbers, fewer gathers)
+    # corners and edges per receiver, then per sample (fewer gathers, the same numbers)
     f = patches.faces[rows]
     v = patches.vertices
-    v0 = v[f[:, 0]]
-    e1, e2 = v[f[:, 1]] - v0, v[f[:, 2]] - v0
     n = patches.normal[rows][owner]
-    s = np.sqrt(u_pos[:, 0])
-    b1 = s * (1.0 - u_pos[:, 1])
-    b2 = s * u_pos[:, 1]
-    points = v0[owner] + b1[:, None] * e1[owner] + b2[:, None] * e2[owner] + ray_offset(patches) * n
+    points = triangle_points(v[f[:, 0]], v[f[:, 1]], v[f[:, 2]], u_pos, owner) + ray_offset(patches) * n
     return u, owner, in_a, points, n
 
 

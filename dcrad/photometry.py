@@ -128,10 +128,14 @@ def stats(lux: np.ndarray, area: np.ndarray | None = None) -> dict:
     if not lux.size:
         return {"E_avg_lux": 0.0, "E_min_lux": 0.0, "E_max_lux": 0.0, "uniformity": 0.0}
     w = np.ones_like(lux) if area is None else np.asarray(area, np.float64)
-    avg = float((lux * w).sum() / w.sum()) if w.sum() > 0 else float(lux.mean())
-    lo = float(lux.min())
-    return {"E_avg_lux": avg, "E_min_lux": lo, "E_max_lux": float(lux.max()),
-            "uniformity": lo / avg if avg > 0 else 0.0}
+    return _stats_of((lux * w).sum(), w.sum(), lux.mean(), lux.min(), lux.max())
+
+
+def _stats_of(weighted, weight, mean, lo, hi) -> dict:
+    """``stats`` from its sums: sum of lux x weight, sum of weight, plain mean, min and max."""
+    avg = float(weighted / weight) if weight > 0 else float(mean)
+    return {"E_avg_lux": avg, "E_min_lux": float(lo), "E_max_lux": float(hi),
+            "uniformity": float(lo) / avg if avg > 0 else 0.0}
 
 
 def surface_stats(patches, lux: np.ndarray) -> list[dict]:
@@ -152,13 +156,9 @@ def surface_stats(patches, lux: np.ndarray) -> list[dict]:
     lo, hi = np.full(m, 0.0), np.full(m, 0.0)
     lo[used] = np.minimum.reduceat(lux[order], starts)
     hi[used] = np.maximum.reduceat(lux[order], starts)
-    out = []
-    for g in used:
-        avg = float(lux_a[g] / area[g]) if area[g] > 0 else float(lux_sum[g] / count[g])
-        out.append({"name": names[g], "area_m2": float(area[g]), "E_avg_lux": avg, "E_min_lux": float(lo[g]),
-                    "E_max_lux": float(hi[g]), "uniformity": float(lo[g]) / avg if avg > 0 else 0.0,
-                    "L_avg_cd_m2": float(lum_a[g] / area[g]) if area[g] > 0 else 0.0})
-    return out
+    return [{"name": names[g], "area_m2": float(area[g]),
+             **_stats_of(lux_a[g], area[g], lux_sum[g] / count[g], lo[g], hi[g]),
+             "L_avg_cd_m2": float(lum_a[g] / area[g]) if area[g] > 0 else 0.0} for g in used]
 
 
 def workplane(patches, height: float, spacing: float | None = None, tracer: Tracer | None = None,

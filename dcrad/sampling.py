@@ -111,15 +111,21 @@ def rank1_lattice(index: np.ndarray, m: int, shift: np.ndarray) -> np.ndarray:
     return u
 
 
-def triangle_points(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray, u: np.ndarray) -> np.ndarray:
+def triangle_points(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray, u: np.ndarray,
+                    owner: np.ndarray | None = None) -> np.ndarray:
     """Uniform points on triangles by the square-root map.
 
-    v0, v1, v2 : (m, 3) corners; u : (m, 2) in [0,1)^2 -> (m, 3) points
+    v0, v1, v2 : (m, 3) corners; u : (m, 2) in [0,1)^2 -> (m, 3) points.  ``owner`` (m,): the
+    triangle of each point, when v0, v1, v2 are given once per triangle (the edges are then
+    formed per triangle, not per point: the same numbers).
     """
     s = np.sqrt(u[:, 0])
     b1 = s * (1.0 - u[:, 1])
     b2 = s * u[:, 1]
-    return v0 + b1[:, None] * (v1 - v0) + b2[:, None] * (v2 - v0)
+    e1, e2 = v1 - v0, v2 - v0
+    if owner is not None:
+        v0, e1, e2 = v0[owner], e1[owner], e2[owner]
+    return v0 + b1[:, None] * e1 + b2[:, None] * e2
 
 
 def concentric_disk(u: np.ndarray) -> np.ndarray:
