@@ -81,7 +81,7 @@ def _texture_refs(mtllibs: list[str], folder: str) -> list[str]:
         full = inside_folder(folder, one, one, "mtllib")
         if not os.path.isfile(full):
             continue
-        for mat in read_mtl(full, one, folder).values():
+        for mat in read_mtl(full, one, folder, exact=False).values():
             refs += [name for key, name in mat.textures if key.lower() == "map_kd"
                      and os.path.isfile(inside_folder(folder, name, one, "texture"))]
     return refs

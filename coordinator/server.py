@@ -14,6 +14,7 @@ import asyncio
 import ctypes
 import logging
 import shutil
+import threading
 import uuid
 from pathlib import Path
 
@@ -134,6 +135,13 @@ class CoordinatorServicer(pb_grpc.CoordinatorServicer):
                                       for w in list(self.manager.pool.workers.values())])
 
 
+def _warm_imports() -> None:
+    """Import what loading a scene needs (dcrad.scene imports trimesh lazily)."""
+    import trimesh.exchange.obj  # noqa: F401, PLC0415
+    import trimesh.remesh  # noqa: F401, PLC0415
+    import trimesh.transformations  # noqa: F401, PLC0415
+
+
 async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "dcrad-coordinator",
                 max_upload: int = MAX_UPLOAD, worker_wait: float = 60.0, ready=None, stop: asyncio.Event | None = None,
                 web_port: int | None = None, web_host: str = "127.0.0.1", web_ready=None,
@@ -163,6 +171,9 @@ async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "
             web_ready(web_url)
     if ready is not None:
         ready(bound)
+    # the first job's load needs trimesh (0.5 s of imports): taken now, while the client prepares
+    # its upload, not after it
+    threading.Thread(target=_warm_imports, name="warm-imports", daemon=True).start()
     stop = stop_on_signals(stop)
     await stop.wait()
     tasks = [asyncio.create_task(runner.cleanup())] if runner is not None else []

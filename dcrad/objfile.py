@@ -260,16 +260,17 @@ def _floats(tokens, mat: MtlMaterial, key: str, text: str, no: int):
     return vals
 
 
-def read_mtl(path: str, label: str, folder: str) -> dict[str, MtlMaterial]:
-    """Read one MTL file.  Texture paths are checked against ``folder``."""
-    from trimesh.exchange.obj import parse_mtl  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
+def read_mtl(path: str, label: str, folder: str, exact: bool = True) -> dict[str, MtlMaterial]:
+    """Read one MTL file.  Texture paths are checked against ``folder``.
 
+    ``exact``: take Kd's floats from trimesh's ``parse_mtl`` (the loader's); False leaves the
+    ones read here (what an upload needs, its texture files: no trimesh import, 0.5-0.9 s of
+    `dcrad solve --workers N`'s start-up before the upload)."""
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:
             lines = [ln.split("#", 1)[0].rstrip() for ln in fh.read().splitlines()]
     except OSError as exc:
         raise SceneFormatError(f"cannot read material library {label}: {exc.strerror or exc}") from None
-    parsed = parse_mtl("\n".join(lines), resolver=None)
     out: dict[str, MtlMaterial] = {}
     mat = None
     for no, s in enumerate(lines, 1):
@@ -295,6 +296,11 @@ def read_mtl(path: str, label: str, folder: str) -> dict[str, MtlMaterial]:
             name = parts[-1] if rest.startswith("-") else rest
             inside_folder(folder, name, f"material '{mat.name}' in {label} line {no}", f"texture {parts[0]}")
             mat.textures.append((parts[0], name))
+    if not exact:
+        return out
+    from trimesh.exchange.obj import parse_mtl  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
+
+    parsed = parse_mtl("\n".join(lines), resolver=None)
     for name, mat in out.items():
         got = parsed.get(name, {}).get("kd")  # exact floats (last Kd statement wins)
         if mat.kd is not None and got is not None:

@@ -39,15 +39,31 @@ class Tracer:
     backend   : "embree" (default when available) or "numpy"
     """
 
-    def __init__(self, triangles: np.ndarray, backend: str | None = None):
-        tri = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
-        self.n = len(tri)
+    def __init__(self, triangles: np.ndarray | None, backend: str | None = None, *,
+                 vertices: np.ndarray | None = None, faces: np.ndarray | None = None):
+        """From (n, 3, 3) ``triangles``, or (``triangles`` None) from shared ``vertices`` (v, 3) and
+        ``faces`` (n, 3) indices into them (``Tracer.mesh``): the same float32 corners, so the same
+        hits, and embreex copies v + n rows instead of 3n + n (its copy is most of the build: 0.4
+        against 0.2 s on the 8x8 office's 201k patches)."""
+        if triangles is None:
+            if vertices is None or faces is None:
+                raise ValueError("Tracer: give triangles, or vertices and faces")
+            vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+            faces = np.asarray(faces, np.int64).reshape(-1, 3)
+            self.n = len(faces)
+        else:
+            tri = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
+            self.n = len(tri)
         if backend is None:
             backend = "embree" if embree_available() else "numpy"
         if backend == "embree" and not embree_available():
             raise ImportError(f"embreex is not importable: {_EMBREE_ERROR}")
         self.backend = backend
-        if self.n:
+        if self.n and triangles is None:
+            used = np.zeros(len(vertices), bool)
+            used[faces.ravel()] = True  # the corners' box (vertices no face uses do not count)
+            lo, hi = vertices[used].min(axis=0), vertices[used].max(axis=0)
+        elif self.n:
             lo, hi = tri.reshape(-1, 3).min(axis=0), tri.reshape(-1, 3).max(axis=0)
         else:
             lo = hi = np.zeros(3)
@@ -55,19 +71,31 @@ class Tracer:
         self.scale = max(float(np.linalg.norm(hi - lo)), 1e-300)
         #: exact float32 conversion at any size: Embree sees a box of diagonal in [0.7, 1.4]
         self.unit = float(np.ldexp(1.0, int(np.round(np.log2(self.scale))))) if self.n else 1.0
+        if triangles is None and backend != "embree":
+            tri = vertices[faces]
         if backend == "embree":
             self._scene = _rtcs.EmbreeScene()
             if self.n:
                 # shifted, scaled and rounded to float32 in chunks: no whole float64 copy
                 # (70 MB at 1.27M triangles; the same numbers as converting it whole)
-                flat = tri.reshape(-1, 3)
+                flat = vertices if triangles is None else tri.reshape(-1, 3)
                 verts = np.empty(flat.shape, np.float32)
                 for lo in range(0, len(flat), 1 << 18):
                     verts[lo:lo + (1 << 18)] = (flat[lo:lo + (1 << 18)] - self.center) / self.unit
-                faces = np.arange(3 * self.n, dtype=np.int32).reshape(-1, 3)
-                _TriangleMesh(self._scene, verts, faces)
+                if triangles is None:
+                    index = faces.astype(np.int32)
+                else:
+                    index = np.arange(3 * self.n, dtype=np.int32).reshape(-1, 3)
+                _TriangleMesh(self._scene, verts, index)
         else:
             self._tri = (tri - self.center) / self.unit
+
+    @classmethod
+    def mesh(cls, patches, rows: np.ndarray | None = None, backend: str | None = None) -> "Tracer":
+        """The tracer of ``patches`` (its rows ``rows``: primitive i is rows[i]) from its shared
+        vertices: the same hits as ``Tracer(patches.corners(rows))``, built in half the time."""
+        faces = patches.faces if rows is None else patches.faces[rows]
+        return cls(None, backend, vertices=patches.vertices, faces=faces)
 
     # ------------------------------------------------------------------------------
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, normals: bool = False):

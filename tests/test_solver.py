@@ -231,3 +231,34 @@ def test_builtin_furnace_file_meets_the_identity(tmp_path, rho):
     assert np.allclose(p.rho, rho, rtol=0, atol=0)  # Kd survives the file exactly
     assert np.all(np.abs(mean_reflected - expected) <= (tol + 2e-4) * np.asarray(expected))
     assert s.ledger.closure() < 1e-10
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tracer_from_shared_vertices_hits_what_the_triangle_soup_hits(tmp_path, backend):
+    """Tracer.mesh (shared vertices and faces, the rows given) gives the same primitives,
+    distances and normals as a Tracer of the rows' corners: rays at random, and rays aimed at
+    shared edges' midpoints and shared vertices, where a different float32 corner would move
+    the hit from one triangle to its neighbour."""
+    import scenes
+    from dcrad.scene import load_scene
+
+    patches = load_scene(scenes.write_builtin("cornell", tmp_path)).patches(0.25)
+    rng = np.random.default_rng(5)
+    rows = np.sort(rng.choice(len(patches), len(patches) * 2 // 3, replace=False))
+    tri = patches.corners(rows)
+    aims = np.concatenate([0.5 * (tri[:, 0] + tri[:, 1]), tri[:, 2], tri.mean(axis=1)])
+    origins = patches.centroid[rng.integers(0, len(patches), len(aims))] + 1e-3 * rng.normal(size=(len(aims), 3))
+    more = rng.normal(size=(4000, 3))
+    origins = np.concatenate([origins, patches.centroid[rng.integers(0, len(patches), 4000)]])
+    dirs = np.concatenate([aims - origins[:len(aims)], more])
+    if backend == "numpy":
+        origins, dirs = origins[:3000], dirs[:3000]
+    for soup, mesh in ((Tracer(tri, backend), Tracer.mesh(patches, rows, backend)),
+                       (Tracer(patches.triangles, backend), Tracer.mesh(patches, backend=backend))):
+        assert soup.n == mesh.n and np.array_equal(soup.center, mesh.center) and soup.unit == mesh.unit
+        a, b = soup.intersect(origins, dirs, normals=True), mesh.intersect(origins, dirs, normals=True)
+        assert (a[0] != -1).mean() > 0.5  # most rays hit something
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+        tmax = rng.random(len(origins)) * 2.0
+        np.testing.assert_array_equal(soup.occluded(origins, dirs, tmax), mesh.occluded(origins, dirs, tmax))

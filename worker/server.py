@@ -170,7 +170,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                 table = {k[len("scene_"):]: v for k, v in arrays.items() if k.startswith("scene_")}
                 t_read = time.perf_counter()
                 patches = Patches.from_table(table, list(header.names))
-                self.scenes[job] = (patches, await asyncio.to_thread(Tracer, patches.triangles))
+                self.scenes[job] = (patches, await asyncio.to_thread(Tracer.mesh, patches))
                 log.info("job %s: patch table of %d patches (%.0f MB) read in %.2f s, loaded in %.2f s", job,
                          len(patches), sum(v.nbytes for v in table.values()) / 1e6, t_read - t_in,
                          time.perf_counter() - t_read)
@@ -257,7 +257,7 @@ async def register_forever(coordinator: str, address: str, capacity: int, name: 
     # a worker started beside its coordinator (LocalCluster) registers the moment it listens: the
     # first calls wait for the channel, which retries its connection every 0.1-2 s
     backoff = [("grpc.initial_reconnect_backoff_ms", 100), ("grpc.min_reconnect_backoff_ms", 100),
-               ("grpc.max_reconnect_backoff_ms", 2000)]
+               ("grpc.max_reconnect_backoff_ms", 250)]
     async with grpc.aio.insecure_channel(coordinator, options=backoff) as channel:
         stub = pb_grpc.CoordinatorStub(channel)
         while not stop.is_set():
