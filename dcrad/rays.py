@@ -45,50 +45,44 @@ class Tracer:
         ``faces`` (n, 3) indices into them (``Tracer.mesh``): the same float32 corners, so the same
         hits, and embreex copies v + n rows instead of 3n + n (its copy is most of the build: 0.4
         against 0.2 s on the 8x8 office's 201k patches)."""
+        verts: np.ndarray  #: (v, 3) float64 corners, and ``index`` (n, 3) into them
         if triangles is None:
             if vertices is None or faces is None:
                 raise ValueError("Tracer: give triangles, or vertices and faces")
-            vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
-            faces = np.asarray(faces, np.int64).reshape(-1, 3)
-            self.n = len(faces)
+            verts = np.asarray(vertices, np.float64).reshape(-1, 3)
+            index = np.asarray(faces, np.int64).reshape(-1, 3)
+            used = np.zeros(len(verts), np.bool_)
+            used[index.ravel()] = True  # the corners' box (vertices no face uses do not count)
+            corners = verts[used]
         else:
-            tri = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
-            self.n = len(tri)
+            verts = np.asarray(triangles, np.float64).reshape(-1, 3)
+            index = np.arange(len(verts), dtype=np.int64).reshape(-1, 3)
+            corners = verts
+        self.n = len(index)
         if backend is None:
             backend = "embree" if embree_available() else "numpy"
         if backend == "embree" and not embree_available():
             raise ImportError(f"embreex is not importable: {_EMBREE_ERROR}")
         self.backend = backend
-        if self.n and triangles is None:
-            used = np.zeros(len(vertices), bool)
-            used[faces.ravel()] = True  # the corners' box (vertices no face uses do not count)
-            lo, hi = vertices[used].min(axis=0), vertices[used].max(axis=0)
-        elif self.n:
-            lo, hi = tri.reshape(-1, 3).min(axis=0), tri.reshape(-1, 3).max(axis=0)
+        if self.n:
+            lo, hi = corners.min(axis=0), corners.max(axis=0)
         else:
             lo = hi = np.zeros(3)
         self.center = 0.5 * (lo + hi)
         self.scale = max(float(np.linalg.norm(hi - lo)), 1e-300)
         #: exact float32 conversion at any size: Embree sees a box of diagonal in [0.7, 1.4]
         self.unit = float(np.ldexp(1.0, int(np.round(np.log2(self.scale))))) if self.n else 1.0
-        if triangles is None and backend != "embree":
-            tri = vertices[faces]
         if backend == "embree":
             self._scene = _rtcs.EmbreeScene()
             if self.n:
                 # shifted, scaled and rounded to float32 in chunks: no whole float64 copy
                 # (70 MB at 1.27M triangles; the same numbers as converting it whole)
-                flat = vertices if triangles is None else tri.reshape(-1, 3)
-                verts = np.empty(flat.shape, np.float32)
-                for lo in range(0, len(flat), 1 << 18):
-                    verts[lo:lo + (1 << 18)] = (flat[lo:lo + (1 << 18)] - self.center) / self.unit
-                if triangles is None:
-                    index = faces.astype(np.int32)
-                else:
-                    index = np.arange(3 * self.n, dtype=np.int32).reshape(-1, 3)
-                _TriangleMesh(self._scene, verts, index)
+                flat = np.empty(verts.shape, np.float32)
+                for lo in range(0, len(verts), 1 << 18):
+                    flat[lo:lo + (1 << 18)] = (verts[lo:lo + (1 << 18)] - self.center) / self.unit
+                _TriangleMesh(self._scene, flat, index.astype(np.int32))
         else:
-            self._tri = (tri - self.center) / self.unit
+            self._tri = (verts[index] - self.center) / self.unit
 
     @classmethod
     def mesh(cls, patches, rows: np.ndarray | None = None, backend: str | None = None) -> "Tracer":
