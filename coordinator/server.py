@@ -25,6 +25,7 @@ from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import FileSink, path_chunks
 
+from . import ahead
 from .jobs import TERMINAL, JobManager
 from .remote import WorkerPool
 from .rpc import shutdown, start_server, stop_on_signals
@@ -171,8 +172,9 @@ async def serve(port: int = 50051, host: str = "127.0.0.1", root: str | Path = "
             web_ready(web_url)
     if ready is not None:
         ready(bound)
-    # the first job's load needs trimesh (0.5 s of imports): taken now, while the client prepares
-    # its upload, not after it
+    # the first job's load needs trimesh (0.5 s of imports) and its views a process (ahead.py):
+    # both started now, while the client prepares its upload, not after it
+    ahead.prestart()
     threading.Thread(target=_warm_imports, name="warm-imports", daemon=True).start()
     stop = stop_on_signals(stop)
     await stop.wait()

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import grpc
@@ -83,6 +84,7 @@ class RemoteShares:
                 for attempt in range(2):
                     with_scene = w.address not in self.loaded
                     with_shot = w.address not in self.shot_on  # the worker keeps it for the job
+                    sent = time.perf_counter()
                     replies = w.stub().Share(self._requests(phase, index, count, inputs, with_scene, with_shot),
                                              timeout=self.timeout)
                     with self._lock:
@@ -95,6 +97,8 @@ class RemoteShares:
                         self.used.add(w.address)
                         if any(k.startswith("shot_") for k in inputs):
                             self.shot_on.add(w.address)
+                        log.info("job %s: %s share %d back from %s %.2f s after it was sent", self.job_id, phase,
+                                 index, w.address, time.perf_counter() - sent)
                         return asm.result()
                     except grpc.RpcError as exc:
                         if exc.code() == grpc.StatusCode.NOT_FOUND and attempt == 0:

@@ -227,10 +227,14 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                                                                       f"the request has no array {exc}")
             except (DcradError, TypeError, ValueError) as exc:
                 await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {header.phase} share: {exc}")
-            log.info("job %s: %s share %d of %d in %.2f s (%.2f CPU s)", job, header.phase, header.index,
-                     header.count, time.perf_counter() - t0, time.process_time() - c0)
+            log.info("job %s: %s share %d of %d in %.2f s (%.2f CPU s; its request read in %.2f s)", job,
+                     header.phase, header.index, header.count, time.perf_counter() - t0, time.process_time() - c0,
+                     t0 - t_in)
+        t1 = time.perf_counter()
         for chunk in arrays_to_chunks(out):
             yield chunk
+        log.info("job %s: %s share %d replied in %.2f s (%.1f MB)", job, header.phase, header.index,
+                 time.perf_counter() - t1, sum(np.asarray(v).nbytes for v in out.values()) / 1e6)
 
     async def Drop(self, request, context):
         if request.cell < 0:  # a shared run's patch table
