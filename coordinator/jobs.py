@@ -152,6 +152,10 @@ def background() -> None:
         pass
 
 
+#: s a display waits at most for the workers' requests to be sent (BarrierDisplay.quiet)
+QUIET_WAIT = 30.0
+
+
 class BarrierDisplay:
     """What the status page shows, kept off the barrier loop: assemble B, record the error
     curve, render previews.
@@ -160,11 +164,15 @@ class BarrierDisplay:
     daemon thread does the work: every state goes to the error curve (which keeps
     geometrically spaced times), the latest to the preview when one is due.  (Keeping
     only the latest state lost a barrier from the curve while a preview rendered.)
-    ``close`` finishes the pending states and ends the thread.
+    ``close`` finishes the pending states (the curve; no preview: the outputs make the final
+    state's) and ends the thread.
     """
 
-    def __init__(self, assemble_b, curve: "ErrorCurve", preview: LivePreview, count):
+    def __init__(self, assemble_b, curve: "ErrorCurve", preview: LivePreview, count,
+                 quiet: threading.Event | None = None):
         self.assemble_b, self.curve, self.preview, self.count = assemble_b, curve, preview, count
+        #: the work waits while this is clear (a shared run's requests streaming to the workers)
+        self.quiet = quiet
         self.seconds = 0.0  #: s of display work (assembly, curve, previews)
         self.cpu_seconds = 0.0  #: CPU s of it (its thread's: at nice 10 its wall s overstate it)
         self._queue: list[tuple[float, int, np.ndarray]] = []  # (elapsed, barrier, values)
@@ -188,11 +196,15 @@ class BarrierDisplay:
                     return
                 todo, self._queue = self._queue, []
             for i, (elapsed, barrier, values) in enumerate(todo):
+                if self.quiet is not None:
+                    self.quiet.wait(QUIET_WAIT)
                 t0, c0 = time.perf_counter(), time.thread_time()
                 try:
                     b = self.assemble_b(values)
                     self.curve.record(elapsed, barrier, b)
-                    if i == len(todo) - 1 and self.preview.due():
+                    # once closed, the last state's preview is the outputs' own (the job copies it):
+                    # rendering it here held the outputs back
+                    if i == len(todo) - 1 and not self._closed and self.preview.due():
                         self.preview.render(b, barrier)
                         self.count(previews=1)
                 except Exception:  # the display must never stop a solve
@@ -640,7 +652,7 @@ class JobManager:
                                   on_barrier=on_barrier, should_stop=job.cancel.is_set,
                                   first_barrier=resume.barrier if resume else 0)
             writer.close()
-            display.close()  # the curve's last states and the pending preview are in
+            display.close()  # the curve's last states are in (their preview is the outputs')
             mem("solve")
 
             # Results: the same files as `dcrad solve`
@@ -713,7 +725,7 @@ class JobManager:
         job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval,
                                   views)
         job.curve.folder = job.root / "curve"
-        display = BarrierDisplay(lambda b: b, job.curve, job.preview, self.count)
+        display = BarrierDisplay(lambda b: b, job.curve, job.preview, self.count, shares.quiet)
 
         def on_phase(name: str, elapsed: float, rays: int, est=None) -> None:
             """Progress after each phase (direct, shoot, each gather round): the status page's barriers."""
@@ -750,7 +762,8 @@ class JobManager:
         where = f"{len(shares.used)} worker process(es): {', '.join(sorted(shares.used))}"
         books, shared = shared_books(run, patches, config, timings, where=where)
         shared |= {"workers_used": sorted(shares.used), "reassigned": shares.reassigned,
-                                 "bytes_sent": shares.bytes_sent}
+                   "bytes_sent": shares.bytes_sent, "display_seconds": display.seconds,
+                   "display_cpu_seconds": display.cpu_seconds}
         live = job.preview
         live.close()  # its Embree scene goes before the outputs; the final state's preview is theirs
         job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), len(phases))
