@@ -19,6 +19,7 @@ import json
 import logging
 import math
 import os
+import resource
 import shutil
 import threading
 import time
@@ -364,7 +365,9 @@ class MemoryLog:
             extra = f" (traced {cur / 2**20:.0f} MB, traced peak {tpeak / 2**20:.0f} MB)"
             top = tracemalloc.take_snapshot().statistics("lineno")[:8]
             extra += "".join(f"\n    {st.size / 2**20:8.1f} MB {st.traceback}" for st in top)
-        log.info("job %s: coordinator RSS %.0f MB after %s, peak %.0f MB%s", self.job_id, rss, phase, peak, extra)
+        use = resource.getrusage(resource.RUSAGE_SELF)
+        log.info("job %s: coordinator RSS %.0f MB after %s, peak %.0f MB%s; so far %.1f user + %.1f system CPU s, "
+                 "%d page faults", self.job_id, rss, phase, peak, extra, use.ru_utime, use.ru_stime, use.ru_minflt)
 
 
 @dataclass
