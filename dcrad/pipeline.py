@@ -168,14 +168,20 @@ def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
     if _is_floor_plan(patches):
         views.floor_plan, views.mask = True, render.cutaway_mask(patches)
         views.top_camera = render.topdown_camera(patches, width, height)
-        views.top_tracer = Tracer.mesh(patches, views.mask) if top or ahead else None
+        views.top_tracer = Tracer.mesh(patches, views.mask) if top and not ahead else None
     if ahead:
-        views.hits = render.trace_view(patches, camera, tracer=tracer, samples=render.SAMPLES)
-        if views.top_camera is not None:
-            views.top_hits = render.trace_view(patches, views.top_camera, views.mask, views.top_tracer,
-                                               samples=render.SAMPLES)
-            views.top_tracer = None  # traced: its Embree scene is not needed any more
-        views.smoother = smoother if smoother is not None else render.CornerSmoother(patches)
+        def top_view():
+            views.top_hits = render.trace_view(patches, views.top_camera, views.mask, Tracer.mesh(patches, views.mask),
+                                               samples=render.SAMPLES)  # its Embree scene goes once traced
+
+        # the top-down view in a thread beside the preview's (Embree lets go of the GIL while it
+        # traces): a views process at nice 19 that the solve starved finishes on both cores
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="top-view") as pool:
+            top_done = pool.submit(top_view) if views.top_camera is not None else None
+            views.hits = render.trace_view(patches, camera, tracer=tracer, samples=render.SAMPLES)
+            views.smoother = smoother if smoother is not None else render.CornerSmoother(patches)
+            if top_done is not None:
+                top_done.result()
     if not keep_tracers:
         views.tracer = views.top_tracer = None
     return views
@@ -188,9 +194,10 @@ def views_of_table(table: dict, names: list, camera: dict | None, width: int = 6
     with ``live_size`` also the live preview's view (``OutputViews.live``)."""
     patches = Patches.from_table(table, names)
     scene = SimpleNamespace(camera=camera)
-    views = output_views(scene, patches, width, height, ahead=True, keep_tracers=False)
-    if live_size is not None:
-        views.live = live_view(scene, patches, *live_size)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-view") as pool:  # beside the others
+        live = pool.submit(live_view, scene, patches, *live_size) if live_size is not None else None
+        views = output_views(scene, patches, width, height, ahead=True, keep_tracers=False)
+        views.live = live.result() if live is not None else None
     return views
 
 

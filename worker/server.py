@@ -259,9 +259,9 @@ async def register_forever(coordinator: str, address: str, capacity: int, name: 
     delay = 0.2
     registered = False
     # a worker started beside its coordinator (LocalCluster) registers the moment it listens: the
-    # first calls wait for the channel, which retries its connection every 0.1-2 s
+    # first calls wait for the channel, which retries its connection every 0.1 s
     backoff = [("grpc.initial_reconnect_backoff_ms", 100), ("grpc.min_reconnect_backoff_ms", 100),
-               ("grpc.max_reconnect_backoff_ms", 250)]
+               ("grpc.max_reconnect_backoff_ms", 100)]
     async with grpc.aio.insecure_channel(coordinator, options=backoff) as channel:
         stub = pb_grpc.CoordinatorStub(channel)
         while not stop.is_set():
