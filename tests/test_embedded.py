@@ -135,3 +135,35 @@ def test_a_killed_coordinator_leaves_no_views_process(tmp_path):
         while any(alive(p, s) for p, s in kids.items()) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert not [p for p, s in kids.items() if alive(p, s)]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_job_takes_the_views_process_started_ahead(tmp_path):
+    """coordinator/ahead.py keeps one views process started ahead: a job's ViewsAhead takes it (the
+    same pid), starts the next at nice 19, and gets the views the coordinator would make itself."""
+    import numpy as np
+
+    from coordinator import ahead
+    from dcrad.pipeline import output_views, prepare, resolve_scene
+
+    scene, patches, _ = prepare(resolve_scene("office", tmp_path))
+    ahead.prestart()
+    spare = ahead._spare
+    assert spare is not None and spare.poll() is None
+    job = ahead.ViewsAhead(patches, None, 64, 48, (32, 24))
+    assert job._proc.pid == spare.pid  # taken, not started anew
+    following = ahead._spare
+    assert following is not None and following.pid != spare.pid
+    got = job.future.result(timeout=120)
+    want = output_views(scene, patches, 64, 48, ahead=True)
+    for name in ("pixel", "patch", "bc", "back"):
+        np.testing.assert_array_equal(getattr(got.hits, name), getattr(want.hits, name))
+    assert got.live is not None and got.live.width == 32
+    deadline = time.monotonic() + 30  # the next one lowers itself before it imports anything
+    while time.monotonic() < deadline and (_stat(following.pid) or [""] * 17)[16] != "19":
+        time.sleep(0.05)
+    assert (_stat(following.pid) or [""] * 17)[16] == "19"
+    following.stdin.close()  # as the coordinator's exit would: it ends without a job
+    assert following.wait(30) == 0
+    following.stdout.close()
+    ahead._spare = None
