@@ -371,10 +371,30 @@ def test_display_never_blocks_the_barrier_and_bounds_preview_cost(tmp_path):
     for k in range(2, 6):  # four more barriers while the display is stuck on the first
         display.offer(float(k), k, np.full((len(patches), 3), float(k)))
     gate.set()
+    deadline = __import__("time").monotonic() + 60
+    while len(curve.kept) < 5 and __import__("time").monotonic() < deadline:
+        __import__("time").sleep(0.01)  # state 1's preview came before states 2-5 reached the curve
     display.close()
     assert seen == [1.0, 2.0, 3.0, 4.0, 5.0]  # every state, in order: none lost from the curve
     assert [k for _, k, _ in curve.kept] == [int(v) for v in seen]
     assert prev.current[0] >= 1 and prev._cost > 0
+    # a display closed while it works on a state: the state reaches the curve, but no preview is
+    # rendered, though one is due (the outputs make the final state's)
+    fresh = LivePreview(scene, patches, tmp_path / "live2", size=(32, 24), interval=0.0)
+    curve2 = ErrorCurve(ratio=1.0001)
+    gate.clear()
+    busy.clear()
+    last = BarrierDisplay(assemble_b, curve2, fresh, lambda **kw: None)
+    last.offer(7.0, 7, np.full((len(patches), 3), 7.0))
+    busy.wait()
+    closing = threading.Thread(target=last.close)
+    closing.start()
+    while not last._closed:
+        __import__("time").sleep(0.001)
+    gate.set()
+    closing.join(60)
+    assert [k for _, k, _ in curve2.kept] == [7]
+    assert fresh.due() and fresh.current[0] == 0
     prev._cost = 10.0  # a 10 s render: the next one waits 10 / PREVIEW_SHARE s
     prev._last = __import__("time").monotonic() - 10.0 / PREVIEW_SHARE + 60.0
     assert not prev.due()
