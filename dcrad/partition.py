@@ -99,9 +99,13 @@ class Partition:
 
     def locate(self, points: np.ndarray) -> np.ndarray:
         """(m,) int64 id of the first cell (in list order) containing each point, -1 if none."""
+        p = [np.ascontiguousarray(np.asarray(points, np.float64)[:, a]) for a in range(3)]
         out = np.full(len(points), -1, np.int64)
-        for c in self.cells[::-1]:
-            out[c.contains(points)] = c.id
+        for c in self.cells[::-1]:  # Cell.contains, a column at a time
+            m = (p[0] >= c.lo[0]) & (p[0] <= c.hi[0])
+            for a in (1, 2):
+                m &= (p[a] >= c.lo[a]) & (p[a] <= c.hi[a])
+            out[m] = c.id
         return out
 
     def as_dict(self) -> dict:
@@ -128,7 +132,8 @@ SPLIT_SLACK = 0.125
 
 def _work(patches: Patches, work: str) -> np.ndarray:
     if work == "light":  # expected rays: a share per patch plus LIGHT_WEIGHT times the emitted share
-        n, phi = len(patches), (patches.emission * patches.area[:, None]).sum(axis=1)
+        e, a = patches.emission, patches.area  # the sum over RGB of E * area, in that order
+        n, phi = len(patches), (e[:, 0] * a + e[:, 1] * a) + e[:, 2] * a
         total = float(phi.sum())
         return np.full(n, 1.0 / max(n, 1)) + (LIGHT_WEIGHT * phi / total if total > 0 else 0.0)
     if work not in ("area", "count"):
@@ -139,6 +144,17 @@ def _work(patches: Patches, work: str) -> np.ndarray:
 def _root_box(patches: Patches) -> tuple[np.ndarray, np.ndarray]:
     pad = _PAD * patches.scale
     return patches.bounds[0] - pad, patches.bounds[1] + pad
+
+
+def _extents(patches: Patches) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per axis, each patch's (min, max) coordinate (from vertex columns: no (n, 3, 3) array)."""
+    f = [np.ascontiguousarray(patches.faces[:, j]) for j in range(3)]
+    out = []
+    for a in range(3):
+        v = np.ascontiguousarray(patches.vertices[:, a])
+        x0, x1, x2 = v[f[0]], v[f[1]], v[f[2]]
+        out.append((np.minimum(np.minimum(x0, x1), x2), np.maximum(np.maximum(x0, x1), x2)))
+    return out
 
 
 def _forbidden(patches: Patches, axis: int, eps: float) -> tuple[np.ndarray, np.ndarray]:
@@ -282,9 +298,7 @@ def _kd_split(patches, k, candidates=33, balance=1.0, rng_seed=0, work="area",
     w_all, area = _work(patches, work), patches.area
     cent = [np.ascontiguousarray(patches.centroid[:, a]) for a in range(3)]
     forb, thin = [], []
-    for a in range(3):
-        x = patches.vertices[:, a][patches.faces]
-        mn, mx = x.min(axis=1), x.max(axis=1)
+    for mn, mx in _extents(patches):
         forb.append(_forbidden_of(mn, mx, eps))
         thin.append((mx - mn) < eps)
     if k > 1:  # openness: traced against the input triangles, not the patches (_surfaces)
@@ -550,7 +564,7 @@ def clip(patches: Patches, part: Partition) -> list[tuple[Patches, np.ndarray]]:
     conserved to round-off.  Rows are in parent order.
     """
     # per axis, each patch's extent: a patch inside a cell is inside all its six planes
-    ext = [(x.min(axis=1), x.max(axis=1)) for x in (patches.vertices[:, a][patches.faces] for a in range(3))]
+    ext = _extents(patches)
     inside_all = [np.ones(len(patches), bool) for _ in part.cells]
     for c, inside in zip(part.cells, inside_all):
         for a, (mn, mx) in enumerate(ext):
