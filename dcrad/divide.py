@@ -146,8 +146,11 @@ class Subscene(Solver):
 
     def __init__(self, cell: int, patches: Patches, boundaries: list[Boundary], config: SolverConfig,
                  power_per_ray: float, mode: str = "binned", local_target: float = 0.0):
-        tri = [patches.triangles] + [b.triangles() for b in boundaries]
-        super().__init__(patches, config, tracer=Tracer(np.concatenate(tri)))
+        # the patches, then each boundary's two triangles (their rows follow the patches')
+        portals = np.concatenate([b.triangles() for b in boundaries]).reshape(-1, 3) if boundaries \
+            else np.zeros((0, 3))
+        faces = np.concatenate([patches.faces, len(patches.vertices) + np.arange(len(portals)).reshape(-1, 3)])
+        super().__init__(patches, config, tracer=Tracer.mesh(np.concatenate([patches.vertices, portals]), faces))
         self.cell = cell
         #: adaptive doIterations: W of local residual below which a barrier's iterations stop
         self.local_target = local_target

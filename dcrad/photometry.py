@@ -86,7 +86,7 @@ def irradiance(patches, tracer: Tracer | None = None, rays: int = GATHER_RAYS, s
     gathered = np.any(rho < RHO_GATHER, axis=1)
     idx = np.flatnonzero(gathered)
     if len(idx):
-        tracer = tracer or Tracer(patches.corners())
+        tracer = tracer or Tracer.mesh(patches.vertices, patches.faces)
         tri = patches.corners(idx)
         rng = np.random.default_rng(seed + 1)
         u = rng.random((len(idx), 2))
@@ -179,7 +179,7 @@ def workplane(patches, height: float, spacing: float | None = None, tracer: Trac
     zs = np.arange(lo[2] + 0.5 * spacing, hi[2], spacing)
     xx, zz = np.meshgrid(xs, zs)
     pts = np.stack([xx.ravel(), np.full(xx.size, lo[1] + height), zz.ravel()], axis=1)
-    tracer = tracer or Tracer(patches.corners())
+    tracer = tracer or Tracer.mesh(patches.vertices, patches.faces)
     border = min(0.5, 0.1 * min(ext[0], ext[2])) if border is None else border
     near = np.zeros(len(pts), bool)
     for d in ([1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0]):

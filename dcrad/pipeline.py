@@ -149,7 +149,7 @@ def live_view(scene, patches: Patches, width: int, height: int) -> render.ViewHi
     else:
         cam = render.auto_camera(patches, width, height)
     idx = np.arange(len(patches)) if mask is None else np.flatnonzero(mask)
-    return render.trace_view(patches, cam, mask, Tracer(patches.corners(idx)))
+    return render.trace_view(patches, cam, mask, Tracer.mesh(patches.vertices, patches.faces[idx]))
 
 
 def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
@@ -161,14 +161,14 @@ def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
     ``ahead``: also trace both views (the top-down Embree scene is then freed) and form the corner
     pairs (``smoother``, if given, is used for them); ``keep_tracers`` False: no Embree scene is
     kept (the views go to another process; the outputs build one if they trace)."""
-    tracer = tracer if tracer is not None else Tracer(patches.corners())
+    tracer = tracer if tracer is not None else Tracer.mesh(patches.vertices, patches.faces)
     camera = (render.camera_from_dict(scene.camera, width, height) if scene.camera
               else render.auto_camera(patches, width, height, tracer=tracer))
     views = OutputViews(tracer, camera, False)
     if _is_floor_plan(patches):
         views.floor_plan, views.mask = True, render.cutaway_mask(patches)
         views.top_camera = render.topdown_camera(patches, width, height)
-        views.top_tracer = Tracer(patches.corners(views.mask)) if top or ahead else None
+        views.top_tracer = Tracer.mesh(patches.vertices, patches.faces[views.mask]) if top or ahead else None
     if ahead:
         views.hits = render.trace_view(patches, camera, tracer=tracer, samples=render.SAMPLES)
         if views.top_camera is not None:
@@ -250,9 +250,10 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     written["preview_exr"] = "preview.exr"
     view = "preview camera"
     if floor_plan and views.top_camera is not None:
-        top_hits = views.top_hits or render.trace_view(patches, views.top_camera, views.mask,
-                                                       views.top_tracer or Tracer(patches.corners(views.mask)),
-                                                       samples=render.SAMPLES)
+        top_hits = views.top_hits
+        if top_hits is None:
+            top_tracer = views.top_tracer or Tracer.mesh(patches.vertices, patches.faces[views.mask])
+            top_hits = render.trace_view(patches, views.top_camera, views.mask, top_tracer, samples=render.SAMPLES)
         both_img = render.shade_view(top_hits, both, backface_color=flag)
         img = both_img[..., :3]
         export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure, shoulder=render.SHOULDER))
@@ -435,7 +436,7 @@ def solve_to(
         timings = {"load_and_mesh_s": t_load, **phases, "setup_s": t_setup, "solve_s": run.wall_seconds}
         books = divided_books(run, patches, config, boundaries, part, divide, timings)
     else:
-        tracer = Tracer(patches.triangles)
+        tracer = Tracer.mesh(patches.vertices, patches.faces)
         t_setup = time.perf_counter() - t0
         solver = solve_to_accuracy(patches, config, tracer, on_progress=on_progress, should_stop=should_stop)
         solver.choices.append("one subscene: no partition, no boundaries, no twin buffers")

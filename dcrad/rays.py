@@ -41,14 +41,34 @@ class Tracer:
 
     def __init__(self, triangles: np.ndarray, backend: str | None = None):
         tri = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
-        self.n = len(tri)
+        self._build(tri.reshape(-1, 3), None, len(tri), backend)
+
+    @classmethod
+    def mesh(cls, vertices: np.ndarray, faces: np.ndarray, backend: str | None = None) -> "Tracer":
+        """The Tracer of ``vertices[faces]`` (the same float32 corners, so the same hits) built
+        from shared vertices: embreex copies its buffers one number at a time through Python
+        indexing, and a vertex shared by six patches is copied once (the 20x20 office's 1.27M
+        patches, 742k vertices: 0.7 s against 2.0 s).  Unused vertices are ignored."""
+        self = cls.__new__(cls)
+        faces = np.asarray(faces, np.int64).reshape(-1, 3)
+        self._build(np.asarray(vertices, np.float64).reshape(-1, 3), faces, len(faces), backend)
+        return self
+
+    def _build(self, verts: np.ndarray, faces: np.ndarray | None, n: int, backend: str | None) -> None:
+        """``verts`` (V, 3) and ``faces`` (n, 3) rows into it, or None: three rows a triangle."""
+        self.n = n
         if backend is None:
             backend = "embree" if embree_available() else "numpy"
         if backend == "embree" and not embree_available():
             raise ImportError(f"embreex is not importable: {_EMBREE_ERROR}")
         self.backend = backend
         if self.n:
-            lo, hi = tri.reshape(-1, 3).min(axis=0), tri.reshape(-1, 3).max(axis=0)
+            used = verts
+            if faces is not None:  # the corners' box: vertices no face uses do not count
+                mask = np.zeros(len(verts), bool)
+                mask[faces.ravel()] = True
+                used = verts[mask]
+            lo, hi = used.min(axis=0), used.max(axis=0)
         else:
             lo = hi = np.zeros(3)
         self.center = 0.5 * (lo + hi)
@@ -60,14 +80,16 @@ class Tracer:
             if self.n:
                 # shifted, scaled and rounded to float32 in chunks: no whole float64 copy
                 # (70 MB at 1.27M triangles; the same numbers as converting it whole)
-                flat = tri.reshape(-1, 3)
-                verts = np.empty(flat.shape, np.float32)
-                for lo in range(0, len(flat), 1 << 18):
-                    verts[lo:lo + (1 << 18)] = (flat[lo:lo + (1 << 18)] - self.center) / self.unit
-                faces = np.arange(3 * self.n, dtype=np.int32).reshape(-1, 3)
-                _TriangleMesh(self._scene, verts, faces)
+                v32 = np.empty(verts.shape, np.float32)
+                for lo in range(0, len(verts), 1 << 18):
+                    v32[lo:lo + (1 << 18)] = (verts[lo:lo + (1 << 18)] - self.center) / self.unit
+                if faces is None:  # three vertices a triangle (embreex's flat form: the same buffers)
+                    _TriangleMesh(self._scene, v32.reshape(-1, 3, 3))
+                else:
+                    _TriangleMesh(self._scene, v32, faces.astype(np.int32))
         else:
-            self._tri = (tri - self.center) / self.unit
+            self._tri = ((verts - self.center) / self.unit).reshape(-1, 3, 3) if faces is None else \
+                ((verts - self.center) / self.unit)[faces]
 
     # ------------------------------------------------------------------------------
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, normals: bool = False):

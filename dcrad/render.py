@@ -316,7 +316,7 @@ def auto_camera(patches, width: int = 640, height: int = 480, tracer: Tracer | N
     ext = np.maximum(hi - lo, 1e-9 * patches.scale)
     c = 0.5 * (lo + hi)
     if tracer is None:
-        tracer = Tracer(patches.corners())
+        tracer = Tracer.mesh(patches.vertices, patches.faces)
     elif tracer.n != len(patches):
         raise ValueError(f"tracer holds {tracer.n} triangles, the table {len(patches)} patches")
     sides = [(0, 1.0), (0, -1.0), (2, 1.0), (2, -1.0)]
@@ -483,7 +483,7 @@ def trace_view(patches, camera: Camera, mask: np.ndarray | None = None, tracer: 
     n = len(patches)
     idx = np.arange(n) if mask is None else np.flatnonzero(np.asarray(mask, bool).reshape(n))
     if tracer is None:
-        tracer = Tracer(patches.corners(idx))
+        tracer = Tracer.mesh(patches.vertices, patches.faces[idx])
     elif tracer.n != len(idx):
         raise ValueError(f"tracer holds {tracer.n} triangles but the mask selects {len(idx)}")
     twin = getattr(patches, "twin", None)

@@ -335,7 +335,7 @@ class LocalShares:
 
     def __init__(self, patches: Patches, config: SolverConfig, tracer: Tracer | None = None):
         self.patches, self.config = patches, config
-        self.tracer = tracer if tracer is not None else Tracer(patches.triangles)
+        self.tracer = tracer if tracer is not None else Tracer.mesh(patches.vertices, patches.faces)
         self.held: dict[int, FinalGather] = {}  #: each share's final gather so far
 
     def direct(self, shares: list[np.ndarray]) -> list[DirectTally | None]:

@@ -141,7 +141,7 @@ class Solver:
         self.patches = patches
         #: settings with the automatic ones filled in (accuracy.resolve: ray density, stop rule)
         self.config = resolve(config or SolverConfig(), len(patches))
-        self.tracer = tracer if tracer is not None else Tracer(patches.triangles)
+        self.tracer = tracer if tracer is not None else Tracer.mesh(patches.vertices, patches.faces)
         self.rng = np.random.default_rng(self.config.seed)
         self.ledger = Ledger(emitted=patches.emitted_power.copy())
         self.ledger.unshot = patches.unshot_power.copy()
