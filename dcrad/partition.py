@@ -594,8 +594,9 @@ def clip(patches: Patches, part: Partition) -> list[tuple[Patches, np.ndarray]]:
             fan_owner.append(cut[ok])
         pieces = np.concatenate(fan_pieces) if fan_pieces else np.zeros((0, 3, 3))
         owner = np.concatenate(fan_owner).astype(np.int64) if fan_owner else np.zeros(0, np.int64)
-        big = triangle_areas(pieces) > min_area
-        pieces, owner = pieces[big], owner[big]
+        piece_area = triangle_areas(pieces)
+        big = piece_area > min_area
+        pieces, owner, piece_area = pieces[big], owner[big], piece_area[big]
         keep = np.flatnonzero(inside)
         # the vertices they use, in order (as np.unique would give them, without a sort)
         used[:] = False
@@ -608,10 +609,14 @@ def clip(patches: Patches, part: Partition) -> list[tuple[Patches, np.ndarray]]:
         parent = np.concatenate([keep, owner])
         order = np.argsort(parent, kind="stable")
         parent, faces = parent[order], faces[order]
-        out.append((Patches(
+        sub = Patches(
             vertices=verts, faces=faces, rho=patches.rho[parent], emission=patches.emission[parent],
             source=patches.source[parent], obj=patches.obj[parent], names=patches.names,
             radiosity=patches.radiosity[parent], unshot=patches.unshot[parent],  # gathered: copies
             twin=remap_twin(patches.twin, parent),
-        ), parent))
+        )
+        # its areas are known: a whole patch's from the table, a piece's just measured (the same
+        # corners in the same order, so the numbers ``area`` would compute from ``triangles``)
+        sub.__dict__["area"] = np.concatenate([patches.area[keep], piece_area])[order]
+        out.append((sub, parent))
     return out

@@ -10,7 +10,7 @@ import pytest
 import scenes
 from dcrad.errors import PartitionError
 from dcrad.partition import Cell, clip, faces_between, openness, partition, split_planes
-from dcrad.patches import Patches
+from dcrad.patches import Patches, triangle_areas
 from scenes.office import room_rect
 
 ROOM, WALL = 4.0, 0.12
@@ -168,6 +168,8 @@ def test_office_clip_conserves_area_and_power(office):
         assert np.all(v >= np.array(cell.lo) - 1e-9 * office.scale)
         assert np.all(v <= np.array(cell.hi) + 1e-9 * office.scale)
         np.testing.assert_array_equal(sub.source, office.source[parent])
+        # the areas clip fills in are those of the pieces' own corners
+        np.testing.assert_array_equal(sub.area, triangle_areas(sub.triangles))
     np.testing.assert_allclose(per_parent, office.area, rtol=1e-9, atol=1e-12)
 
 
@@ -212,7 +214,6 @@ def test_surfaces_keep_patches_that_tile_no_triangle(office):
     """Clipped pieces of a triangle (a quadrilateral, say) and patches sharing a source by
     chance stay as they are: the surfaces cover the same area."""
     from dcrad.partition import _surfaces
-    from dcrad.patches import triangle_areas
 
     part = partition(office, 4)
     for sub, _ in clip(office, part):
