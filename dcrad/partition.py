@@ -191,13 +191,15 @@ def _surfaces(patches: Patches) -> tuple[np.ndarray, np.ndarray]:
     """(T, 3, 3) triangles whose union is the patches' surface, and (T, 3) front normals (not
     unit): what the openness traces.  Back sides (``twin`` rows after their fronts) are left
     out: a two-sided surface counts by its front, as a one-sided one (with both, which of the
-    two coincident triangles a ray hits is Embree's choice, and so was "inside a wall").  Per
-    input triangle (``source``) its patches give way to the triangle of their extreme corners (the farthest along a
-    generic direction and against it, and the farthest from the line through those) when the
-    areas agree and every patch centre lies in it (meshed by
-    midpoint subdivision: the input triangle, its very corner coordinates); other groups stay
-    as patches.  The 20x20 office: 1.27M patches, 26,750 triangles (an Embree scene over the
-    patches took 1.3-3 s of its partition).  Only the openness, a heuristic, sees these."""
+    two coincident triangles a ray hits is Embree's choice, and so was "inside a wall").
+
+    Per input triangle (``source``) its patches give way to the triangle of their extreme
+    corners (the farthest along a generic direction, the farthest against it, and the farthest
+    from the line through those two) when the areas agree and every patch centre lies in it:
+    meshed by midpoint subdivision, that is the input triangle, its very corner coordinates.
+    Other groups (a clipped piece, patches sharing a source by chance) stay as patches.  The
+    20x20 office: 1.27M patches, 26,750 triangles (an Embree scene over the patches took 1.3-3 s
+    of its partition).  Only the openness, a heuristic, sees these."""
     fronts = np.flatnonzero((patches.twin < 0) | (patches.twin > np.arange(len(patches))))
     n = len(fronts)
     if n == 0:
