@@ -10,7 +10,7 @@ import pytest
 import scenes
 from dcrad.errors import PartitionError
 from dcrad.partition import Cell, clip, faces_between, openness, partition, split_planes
-from dcrad.patches import Patches
+from dcrad.patches import Patches, triangle_areas
 from scenes.office import room_rect
 
 ROOM, WALL = 4.0, 0.12
@@ -168,7 +168,64 @@ def test_office_clip_conserves_area_and_power(office):
         assert np.all(v >= np.array(cell.lo) - 1e-9 * office.scale)
         assert np.all(v <= np.array(cell.hi) + 1e-9 * office.scale)
         np.testing.assert_array_equal(sub.source, office.source[parent])
+        # the areas clip fills in are those of the pieces' own corners
+        np.testing.assert_array_equal(sub.area, triangle_areas(sub.triangles))
     np.testing.assert_allclose(per_parent, office.area, rtol=1e-9, atol=1e-12)
+
+
+def _canonical(tri):
+    """Triangles as sorted rows of 9 numbers, each rotated to start at its least corner
+    (the winding kept): equal sets of triangles compare equal."""
+    tri = np.asarray(tri, np.float64)
+    first = np.array([min(range(3), key=lambda j: tuple(t[j])) for t in tri], np.int64)
+    rot = tri[np.arange(len(tri))[:, None], (first[:, None] + np.arange(3)) % 3].reshape(len(tri), 9)
+    return rot[np.lexsort(rot.T[::-1])]
+
+
+@pytest.mark.parametrize("two_sided", [False, True])
+def test_openness_traces_the_input_triangles(tmp_path, two_sided):
+    """The openness traces each input triangle once, rebuilt from its patches (the same corner
+    coordinates and winding; of a two-sided surface its front), not the patches, and
+    measures the same as tracing the (front) patches."""
+    from dcrad.partition import _openness, _surfaces
+    from dcrad.pipeline import prepare
+    from dcrad.rays import Tracer
+
+    path = scenes.write_builtin("office", tmp_path, rows=1, cols=2)
+    scene, p, _ = prepare(path, 0.3, two_sided=two_sided)
+    tri, normals = _surfaces(p)
+    given = scene.vertices[scene.faces[scene.valid]]
+    fronts = np.flatnonzero(p.twin < 0) if not two_sided else np.flatnonzero(p.twin > np.arange(len(p)))
+    assert len(fronts) > 10 * len(given) and (len(fronts) < len(p)) == two_sided
+    np.testing.assert_array_equal(_canonical(tri), _canonical(given))
+    front = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert np.all(np.einsum("ij,ij->i", front, normals) > 0)
+    # the same openness as tracing the patches themselves, along every axis
+    lo, hi = p.bounds
+    for axis in range(3):
+        offsets = np.linspace(lo[axis], hi[axis], 9)[1:-1]
+        mine = openness(p, axis, offsets)
+        theirs = _openness(Tracer(p.triangles[fronts]), p.normal[fronts], axis, offsets, lo, hi, 24, 0.02 * p.scale,
+                           np.random.default_rng(0))
+        np.testing.assert_allclose(mine, theirs, atol=2 / 24 ** 2)
+
+
+def test_surfaces_keep_patches_that_tile_no_triangle(office):
+    """Clipped pieces of a triangle (a quadrilateral, say) and patches sharing a source by
+    chance stay as they are: the surfaces cover the same area."""
+    from dcrad.partition import _surfaces
+
+    part = partition(office, 4)
+    for sub, _ in clip(office, part):
+        tri, _ = _surfaces(sub)
+        assert triangle_areas(tri).sum() == pytest.approx(sub.area.sum(), rel=1e-9)
+        assert len(tri) < len(sub)
+    # an L of three unit squares' triangles, all with one source: no triangle is their union
+    sq = [quad((x, 0, z), (x, 0, z + 1), (x + 1, 0, z + 1), (x + 1, 0, z)) for x, z in [(0, 0), (1, 0), (0, 1)]]
+    ell = make_patches(np.concatenate(sq))
+    ell.source[:] = 7
+    tri, _ = _surfaces(ell)
+    assert len(tri) == len(ell) and triangle_areas(tri).sum() == pytest.approx(3.0)
 
 
 # -- explicit partitions -----------------------------------------------------------------------

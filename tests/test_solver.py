@@ -262,3 +262,24 @@ def test_tracer_from_shared_vertices_hits_what_the_triangle_soup_hits(tmp_path, 
             np.testing.assert_array_equal(x, y)
         tmax = rng.random(len(origins)) * 2.0
         np.testing.assert_array_equal(soup.occluded(origins, dirs, tmax), mesh.occluded(origins, dirs, tmax))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tracer_from_shared_vertices_hits_as_from_triangles(backend):
+    """Tracer(None, vertices=, faces=) answers every query as Tracer(vertices[faces]), bit for bit:
+    the same float32 corners (vertices no face uses, far away here, do not move its frame)."""
+    v, f, _ = subdivide(np.array([[0, 0, 0], [4, 0, 0], [4, 0, 3], [0, 3, 2], [1, 3, 0]], float),
+                        np.array([[0, 2, 1], [0, 3, 2], [0, 1, 4]]), 0.5)
+    v = np.concatenate([v, [[1e6, -1e6, 5e5]]])  # unused
+    rng = np.random.default_rng(3)
+    rows = np.sort(rng.choice(len(f), len(f) // 2, replace=False))
+    whole, mesh = Tracer(v[f[rows]], backend=backend), Tracer(None, backend, vertices=v, faces=f[rows])
+    assert mesh.n == whole.n == len(rows) and np.array_equal(mesh.center, whole.center) and mesh.unit == whole.unit
+    o = rng.uniform([-1, -1, -1], [5, 4, 4], (4000, 3))
+    d = rng.normal(size=(4000, 3))
+    a, b = whole.intersect(o, d, normals=True), mesh.intersect(o, d, normals=True)
+    assert (a[0] >= 0).mean() > 0.05  # enough hits to compare
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    tmax = rng.uniform(0, 5, len(o))
+    np.testing.assert_array_equal(whole.occluded(o, d, tmax), mesh.occluded(o, d, tmax))
