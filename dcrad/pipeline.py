@@ -138,29 +138,36 @@ class OutputViews:
     live: render.ViewHits | None = None  #: the live preview's view (a coordinator's, ahead)
 
 
-def live_view(scene, patches: Patches, width: int, height: int) -> render.ViewHits:
+def live_view(scene, patches: Patches, width: int, height: int, tracer: Tracer | None = None,
+              cut_tracer: Tracer | None = None) -> render.ViewHits:
     """The live preview's view (the status page): the scene's camera, a floor plan's top-down
-    cut-away, or the automatic camera; one ray a pixel."""
+    cut-away, or the automatic camera; one ray a pixel.  ``tracer`` (every patch) and
+    ``cut_tracer`` (the cut-away's rows): Embree scenes to reuse; None: built here."""
     mask: np.ndarray | None = None
     if scene.camera:
         cam = render.camera_from_dict(scene.camera, width, height)
     elif _is_floor_plan(patches):
         cam, mask = render.topdown_camera(patches, width, height), render.cutaway_mask(patches)
     else:
-        cam = render.auto_camera(patches, width, height)
-    idx = np.arange(len(patches)) if mask is None else np.flatnonzero(mask)
-    return render.trace_view(patches, cam, mask, Tracer.mesh(patches, idx))
+        tracer = tracer if tracer is not None else Tracer.mesh(patches)
+        cam = render.auto_camera(patches, width, height, tracer=tracer)
+    if mask is None:
+        return render.trace_view(patches, cam, None, tracer if tracer is not None else Tracer.mesh(patches))
+    return render.trace_view(patches, cam, mask, cut_tracer if cut_tracer is not None else Tracer.mesh(patches, mask))
 
 
 def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
                  tracer: Tracer | None = None, top: bool = True, ahead: bool = False,
-                 smoother: render.CornerSmoother | None = None, keep_tracers: bool = True) -> OutputViews:
+                 smoother: render.CornerSmoother | None = None, keep_tracers: bool = True,
+                 live_size: tuple[int, int] | None = None) -> OutputViews:
     """The ``OutputViews`` of ``patches`` (``tracer``: an Embree scene over ``patches.triangles`` to
     reuse, the solve's; None: build one).  ``top`` False: the top-down Embree scene is left for
     ``write_outputs`` to build when it renders that view (one process: no two scenes held at once).
     ``ahead``: also trace both views (the top-down Embree scene is then freed) and form the corner
     pairs (``smoother``, if given, is used for them); ``keep_tracers`` False: no Embree scene is
-    kept (the views go to another process; the outputs build one if they trace)."""
+    kept (the views go to another process; the outputs build one if they trace); ``live_size``
+    (with ``ahead``): also the live preview's view (``OutputViews.live``), cast with the same
+    Embree scenes."""
     tracer = tracer if tracer is not None else Tracer.mesh(patches)
     camera = (render.camera_from_dict(scene.camera, width, height) if scene.camera
               else render.auto_camera(patches, width, height, tracer=tracer))
@@ -170,18 +177,21 @@ def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
         views.top_camera = render.topdown_camera(patches, width, height)
         views.top_tracer = Tracer.mesh(patches, views.mask) if top and not ahead else None
     if ahead:
-        def top_view():
-            views.top_hits = render.trace_view(patches, views.top_camera, views.mask, Tracer.mesh(patches, views.mask),
-                                               samples=render.SAMPLES)  # its Embree scene goes once traced
+        def top_view(top_camera: render.Camera) -> Tracer:
+            cut = Tracer.mesh(patches, views.mask)
+            views.top_hits = render.trace_view(patches, top_camera, views.mask, cut, samples=render.SAMPLES)
+            return cut
 
         # the top-down view in a thread beside the preview's (Embree lets go of the GIL while it
         # traces): a views process at nice 19 that the solve starved finishes on both cores
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="top-view") as pool:
-            top_done = pool.submit(top_view) if views.top_camera is not None else None
+            top_done = pool.submit(top_view, views.top_camera) if views.top_camera is not None else None
             views.hits = render.trace_view(patches, camera, tracer=tracer, samples=render.SAMPLES)
             views.smoother = smoother if smoother is not None else render.CornerSmoother(patches)
-            if top_done is not None:
-                top_done.result()
+            cut = top_done.result() if top_done is not None else None
+        if live_size is not None:
+            views.live = live_view(scene, patches, *live_size, tracer=tracer, cut_tracer=cut)
+        del cut  # traced: the cut-away's Embree scene is not needed any more
     if not keep_tracers:
         views.tracer = views.top_tracer = None
     return views
@@ -194,11 +204,7 @@ def views_of_table(table: dict, names: list, camera: dict | None, width: int = 6
     with ``live_size`` also the live preview's view (``OutputViews.live``)."""
     patches = Patches.from_table(table, names)
     scene = SimpleNamespace(camera=camera)
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="live-view") as pool:  # beside the others
-        live = pool.submit(live_view, scene, patches, *live_size) if live_size is not None else None
-        views = output_views(scene, patches, width, height, ahead=True, keep_tracers=False)
-        views.live = live.result() if live is not None else None
-    return views
+    return output_views(scene, patches, width, height, ahead=True, keep_tracers=False, live_size=live_size)
 
 
 def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: int = 480,
