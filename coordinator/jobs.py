@@ -636,7 +636,8 @@ class JobManager:
             accuracy = resolve(config).accuracy  # the target every Progress reports (fixed for the job)
 
             def on_barrier(run):
-                writer.submit(run.barriers, {h.cell: h.checkpoint_path for h in handles}, time.time() - job.started)
+                writer.submit(run.barriers, {h.cell: h.checkpoint_path for h in handles}, time.time() - job.started,
+                              run.crossing)
                 values = np.concatenate([h.radiosity() for h in handles])  # the display thread's copy
                 job.residual = run.ledger.residual()
                 job.workers = sorted({h.worker.address for h in handles})
@@ -653,7 +654,8 @@ class JobManager:
             with ThreadPoolExecutor(max_workers=len(handles)) as ex:
                 run = run_divided(handles, boundaries, self._left(config, resume), divide.batches_per_barrier, ex,
                                   on_barrier=on_barrier, should_stop=job.cancel.is_set,
-                                  first_barrier=resume.barrier if resume else 0)
+                                  first_barrier=resume.barrier if resume else 0,
+                                  crossing=resume.crossing if resume else -1.0)
             writer.close()
             display.close()  # the curve's last states are in (their preview is the outputs')
             mem("solve")

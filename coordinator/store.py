@@ -297,7 +297,8 @@ class JobStore:
                 if not {"radiosity", "unshot", "ledger"} <= ChunkFile.names(folder / name):
                     raise ValueError(f"{name} lacks the subscene state")
                 cells[int(cell)] = folder / name
-            return Resume(barrier=int(man["barrier"]), elapsed=float(man.get("elapsed_s", 0.0)), cells=cells)
+            return Resume(barrier=int(man["barrier"]), elapsed=float(man.get("elapsed_s", 0.0)), cells=cells,
+                          crossing=float(man.get("crossing", -1.0)))
         except Exception as exc:  # any damage: a warning and a fresh start, never a crash
             log.warning("job %s: checkpoints in %s are unreadable (%s: %s); the job starts over",
                         job_id, folder, type(exc).__name__, exc)
@@ -333,6 +334,7 @@ class Resume:
     barrier: int
     elapsed: float  #: s the job had run when that barrier was reached
     cells: dict = field(default_factory=dict)
+    crossing: float = -1.0  #: ``DividedRun.crossing`` at that barrier (-1: not known)
 
 
 class CheckpointStats(TypedDict):
@@ -372,12 +374,13 @@ class CheckpointWriter:
                                         daemon=True)
         self._thread.start()
 
-    def submit(self, barrier: int, cells: dict[int, Path | None], elapsed: float = 0.0) -> None:
-        """cells: each cell's checkpoint file at this barrier (None: not on disk, so no manifest)."""
+    def submit(self, barrier: int, cells: dict[int, Path | None], elapsed: float = 0.0, crossing: float = -1.0) -> None:
+        """cells: each cell's checkpoint file at this barrier (None: not on disk, so no manifest);
+        crossing: the run's ``DividedRun.crossing`` then (a resumed run's landing needs it)."""
         with self._cv:
             if self._slot is not None:
                 self.stats["skipped"] += 1
-            self._slot = (barrier, dict(cells), elapsed)
+            self._slot = (barrier, dict(cells), elapsed, crossing)
             self._cv.notify()
 
     def flush(self, timeout: float = 120.0) -> None:
@@ -412,7 +415,7 @@ class CheckpointWriter:
                     self._busy = False
                     self._cv.notify_all()
 
-    def _write(self, barrier: int, cells: dict, elapsed: float) -> None:
+    def _write(self, barrier: int, cells: dict, elapsed: float, crossing: float = -1.0) -> None:
         t0 = time.perf_counter()
         if any(p is None for p in cells.values()):
             missing = sorted(c for c, p in cells.items() if p is None)
@@ -423,7 +426,7 @@ class CheckpointWriter:
             if self.fsync:
                 fsync_file(path)
             written += path.stat().st_size
-        man = {"format": MANIFEST_FORMAT, "barrier": barrier, "elapsed_s": elapsed,
+        man = {"format": MANIFEST_FORMAT, "barrier": barrier, "elapsed_s": elapsed, "crossing": crossing,
                "cells": {str(c): p.name for c, p in sorted(paths.items())}}
         atomic_write(self.folder / MANIFEST, json.dumps(man).encode(), fsync=self.fsync)
         self.barrier = barrier

@@ -405,7 +405,8 @@ class Subscene(Solver):
         self.recount()
         self._book_in_flight()
         rays = 0
-        goal = max(self.local_target, 0.25 * self.local_residual()) if self.local_target > 0 else 0.0
+        share = plan.goal if plan is not None and plan.goal > 0 else BARRIER_GOAL
+        goal = max(self.local_target, share * self.local_residual()) if self.local_target > 0 else 0.0
         cap = FORWARD_CAP * self.config.batch_rays
         deadline = time.perf_counter() + plan.time_left if plan is not None and plan.time_left > 0 else None
         for i in range(n):
@@ -497,6 +498,10 @@ class DividedRun:
     max_twin_bytes: int = 0
     stiff: Stiffness | None = None  #: the last barrier plan's stiffness that changed shooting
     estimate: Estimate | None = None  #: the job's error estimate at the last barrier (``job_estimate``)
+    #: the share of the power shot at the last barrier that came back as another subscene's residual
+    #: (``landing_goal``; -1: not measured yet, as after a resume)
+    crossing: float = -1.0
+    goals: list[float] = field(default_factory=list)  #: each barrier's ``landing_goal`` (0: the plain one)
 
 
 def job_ledger(states: list[SubsceneState]) -> Ledger:
@@ -530,29 +535,65 @@ class BarrierPlan:
     stiffness: Stiffness
     rest: np.ndarray
     time_left: float = 0.0
+    goal: float = 0.0  #: the share of its residual a subscene leaves this barrier (0: ``BARRIER_GOAL``)
 
 
-def barrier_plan(states: list[SubsceneState], config: SolverConfig, time_left: float = 0.0) -> dict:
+#: an adaptive barrier ends once a subscene's residual has fallen to this share of what it held
+#: at the barrier's start (``Subscene.iterate``), unless ``landing_goal`` says otherwise
+BARRIER_GOAL = 0.25
+#: the shares a landing barrier may ask for: below MIN_GOAL a barrier shoots long past where the
+#: estimate was measured; above MAX_GOAL it is hardly worth its sync
+MIN_GOAL, MAX_GOAL = 0.1, 0.8
+#: the last barrier aims at this share of the accuracy target: its noise estimate moves a little
+LANDING = 0.95
+
+
+def landing_goal(estimate: Estimate | None, accuracy: float, crossing: float) -> float:
+    """The share of its residual each subscene should leave this barrier for the job's estimate to
+    land just below ``accuracy`` at the barrier's end, or 0 (the plain ``BARRIER_GOAL``).
+
+    The estimate's bias part is in proportion to the job's unshot and in-flight power (noise.py
+    ``bias_ambient``), so the job's residual must fall by want = sqrt((LANDING a)^2 - noise^2) / bias.
+    The subscenes cannot see each other's light while they shoot: a share ``crossing`` of what
+    they shoot away comes back as another's residual at the barrier (measured at the last one:
+    ``DividedRun.crossing``), so a share f left gives f + crossing (1 - f) of the job's residual.
+    The noise is taken as it is now (it falls as the barrier adds rays: the barrier lands lower).
+    Out of reach of one barrier: 0, plain barriers.
+    """
+    if estimate is None or accuracy <= 0 or not (estimate.bias_refl > 0 and math.isfinite(estimate.noise_refl)):
+        return 0.0
+    room = (LANDING * accuracy) ** 2 - estimate.noise_refl ** 2
+    if room <= 0:
+        return 0.0  # the noise alone is above the target: plain barriers (their rays lower it)
+    want = math.sqrt(room) / estimate.bias_refl
+    f = (want - crossing) / (1.0 - crossing) if crossing < 1.0 else 0.0
+    return float(min(f, MAX_GOAL)) if f >= MIN_GOAL else 0.0
+
+
+def barrier_plan(states: list[SubsceneState], config: SolverConfig, time_left: float = 0.0,
+                 goal: float = 0.0) -> dict:
     """{cell: BarrierPlan} for the next doIterations (empty: plain shooting everywhere).
 
     Stiffness is a property of the whole job (light crosses the boundaries), so
     it is estimated from every subscene's return tallies and area at the
-    barrier, exactly as a single solver estimates its own.
+    barrier, exactly as a single solver estimates its own.  ``goal``: ``landing_goal``'s share.
     """
     area = sum(s.area for s in states)
     tallies = sum((s.tallies for s in states), np.zeros((4, 3)))
     st = stiffness(tallies, area, config)
     if not st.active:
-        return {} if time_left <= 0 else {s.cell: BarrierPlan(st, np.zeros(3), time_left) for s in states}
+        if time_left <= 0 and goal <= 0:
+            return {}
+        return {s.cell: BarrierPlan(st, np.zeros(3), time_left, goal) for s in states}
     held = {s.cell: s.ledger.unshot + s.ledger.in_flight for s in states}
     total = sum(held.values(), np.zeros(3))
-    return {cell: BarrierPlan(st, total - u, time_left) for cell, u in held.items()}
+    return {cell: BarrierPlan(st, total - u, time_left, goal) for cell, u in held.items()}
 
 
 def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], config: SolverConfig,
                 iterations: int = 4,
                 executor: Executor | None = None, assemble_B=None, on_barrier=None,
-                should_stop=None, first_barrier: int = 0) -> DividedRun:
+                should_stop=None, first_barrier: int = 0, crossing: float = -1.0) -> DividedRun:
     """The paper's main loop over subscene handles.
 
     handles    : SubsceneHandle objects (Subscene, or coordinator.remote.RemoteSubscene), one mode
@@ -560,6 +601,7 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
     assemble_B : optional callable () -> (n,3) radiosity of the whole scene, for snapshots
     on_barrier : optional callable (DividedRun) after every barrier
     first_barrier : barriers already done (handles resumed from that barrier's checkpoints)
+    crossing   : ``DividedRun.crossing`` at that barrier (a resumed job lands as the undisturbed one)
     """
     executor = executor or SequentialExecutor()
     config = resolve(config)  # the stop rule: by the error estimate, or at the residual tol
@@ -567,7 +609,7 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
     if len(modes) != 1:
         raise ConfigError(f"the subscenes of one job disagree on the boundary mode: {sorted(modes)}")
     mode = boundary_mode(modes.pop())
-    run = DividedRun(ledger=Ledger(), barriers=first_barrier)
+    run = DividedRun(ledger=Ledger(), barriers=first_barrier, crossing=crossing)
     t0 = time.perf_counter()
 
     def barrier_snapshot(states):
@@ -609,7 +651,11 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
             break
         # doIterations in every subscene (in parallel when the executor allows)
         left = config.time_limit - (time.perf_counter() - t0) if config.time_limit else 0.0
-        plan = barrier_plan(run.states, config, max(left, 1e-9) if config.time_limit else 0.0)
+        landing = by_accuracy(config) and run.crossing >= 0
+        goal = landing_goal(run.estimate, config.accuracy, run.crossing) if landing else 0.0
+        plan = barrier_plan(run.states, config, max(left, 1e-9) if config.time_limit else 0.0, goal)
+        run.goals.append(goal)
+        before = led.residual()
         if plan and next(iter(plan.values())).stiffness.active:
             run.stiff = next(iter(plan.values())).stiffness
         list(executor.map(lambda h, plan=plan: h.iterate(iterations, plan.get(h.cell)), handles))
@@ -621,6 +667,9 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
             h.deliver(outgoing.pop(h.cell) if h.cell in outgoing else mode.empty())
         run.barriers += 1
         led = barrier_snapshot([h.state() for h in handles])
+        if before > 0:  # how far the job's residual fell for the share asked
+            f = goal or BARRIER_GOAL
+            run.crossing = min(max((led.residual() / before - f) / (1.0 - f), 0.0), 0.99)
         if on_barrier is not None:
             on_barrier(run)
         if run.snapshots[-1].rays == run.snapshots[-2].rays and led.residual() > config.tol:

@@ -346,7 +346,11 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
                else divide.iterations, "solid": divide.solid,
                "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
                "twins_delivered": delivered, "twin_blocks": blocks, "dense_twin_bytes": dense,
-               "partition": part.as_dict()}
+               "partition": part.as_dict(), "barrier_goals": [round(g, 4) for g in run.goals]}
+    landed = [g for g in run.goals if g > 0]
+    if landed:
+        choices.append(f"{len(landed)} barrier(s) aimed at the target: each subscene left {landed[-1]:.2f} of its "
+                       f"residual, not a quarter, for the estimate to land just below it (divide.landing_goal)")
     choices.append(describe(config))
     if run.stopped_by == "noise_floor":
         choices.append(noise_floor_note(run.estimate, config.accuracy))

@@ -240,3 +240,35 @@ def test_default_workers_follow_the_run_not_only_the_size():
     assert workers == 0 and str(SHARE_PATCHES) in why
     assert auto_workers(AUTO_DIVIDE_PATCHES // 2, 2)[0] == 0
     assert auto_workers(big, 1)[0] == 0
+
+
+def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatch):
+    """Accuracy mode: once the target is in reach, the subscenes leave the share of their residual
+    that lands the job's estimate just below it (divide.landing_goal), not a quarter each barrier.
+    The 3x3 office at 5% came to 5.05% after three plain barriers and needed a fourth.  Landed, it
+    stops a barrier earlier with fewer rays, and its error measured against a converged unsplit
+    solution is that of the plain run."""
+    import dcrad.divide as divide
+
+    path = scenes.write_builtin("office", tmp_path, seed=0)
+    _, ref, _ = prepare(path)
+    Solver(ref, SolverConfig(accuracy=0.01, seed=99)).run()
+    refl = ref.radiosity - ref.emission
+    runs = {}
+    for land in (True, False):
+        if not land:
+            monkeypatch.setattr(divide, "landing_goal", lambda *a: 0.0)
+        _, p, _ = prepare(path)
+        run, *_ = solve_divided(p, SolverConfig(accuracy=0.05, seed=0), DivideConfig(subscenes=4, mode="exact"),
+                                record=False)
+        assert run.stopped_by == "accuracy" and run.estimate is not None and run.estimate.rms_refl <= 0.05
+        assert max(run.barrier_closures) < 1e-10
+        measured = rms_error(p.radiosity, ref.radiosity, ref.area) / rms_error(refl, 0 * refl, ref.area)
+        runs[land] = (run, measured)
+    (on, on_err), (off, off_err) = runs[True], runs[False]
+    assert any(g > 0 for g in on.goals) and not any(off.goals)
+    assert on.barriers < off.barriers and on.snapshots[-1].rays < 0.97 * off.snapshots[-1].rays
+    # the landed run's measured error meets the target (the reference's own noise is 1%) and its
+    # estimate is honest: within 25% of the measured error
+    assert on_err <= 0.055 and abs(on.estimate.rms_refl / on_err - 1) < 0.25, (on_err, on.estimate)
+    assert off_err <= 0.055

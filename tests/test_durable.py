@@ -173,11 +173,11 @@ def test_checkpoint_writer_manifest_reloads_exactly(tmp_path):
         for c, arrays in state.items():
             files[c] = folder / cell_file(c, barrier)
             ChunkFile.write(files[c], arrays_to_chunks(arrays))
-        writer.submit(barrier, files, float(barrier))
+        writer.submit(barrier, files, float(barrier), barrier / 100)
         writer.flush()  # every barrier on disk, none skipped
     writer.close()
     res = store.resume("j")
-    assert res is not None and res.barrier == 7 and res.elapsed == 7.0
+    assert res is not None and res.barrier == 7 and res.elapsed == 7.0 and res.crossing == 0.07
     for c in state:
         back = ChunkFile.read(res.cells[c])
         for k in state[c]:

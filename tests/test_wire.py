@@ -89,3 +89,21 @@ def test_generated_code_is_fresh(tmp_path):
         fresh = (tmp_path / "dcrad" / "v1" / name).read_text()
         committed = (ROOT / "dcrad" / "v1" / name).read_text()
         assert fresh == committed, f"dcrad/v1/{name} is stale: run `make proto`"
+
+
+def test_barrier_plan_goal_share_round_trips_and_bad_shares_are_refused():
+    """A landing barrier's share (divide.landing_goal) reaches the worker unchanged; a share
+    outside [0, 1) is refused by name, and a plan with only a share is still a plan."""
+    import math
+
+    from dcrad.divide import BarrierPlan
+    from dcrad.solve import Stiffness
+    from dcrad.wire import plan_fields, plan_from_pb
+
+    plan = BarrierPlan(Stiffness.none(), np.zeros(3), 0.0, 0.179)
+    back = plan_from_pb(pb.IterateRequest(batches=4, **plan_fields(plan)))
+    assert back is not None and back.goal == 0.179 and not back.stiffness.active
+    assert plan_from_pb(pb.IterateRequest(batches=4)) is None  # no plan: plain barriers
+    for bad in (1.0, -0.1, math.nan):
+        with pytest.raises(ExchangeError, match="goal_share"):
+            plan_from_pb(pb.IterateRequest(batches=4, **(plan_fields(plan) | {"goal_share": bad})))
