@@ -15,9 +15,11 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shutil
 import signal
 import sys
 import tempfile
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -103,9 +105,9 @@ def cmd_solve(args) -> int:
     from .pipeline import resolve_scene, solve_to
     from .progress import ProgressBar
 
-    choice = None
+    choice, loaded = None, None
     if args.workers is None:  # the default: divide only where it pays
-        args.workers, choice = _auto_workers(args)
+        args.workers, choice, loaded = _auto_workers(args, Path(args.out))
     check_workers(args.workers)
     if args.subscenes < 0:
         raise ConfigError(f"--subscenes must be >= 1 (or 0: one per worker), not {args.subscenes}")
@@ -125,14 +127,17 @@ def cmd_solve(args) -> int:
 
     try:
         with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
-            path = resolve_scene(args.scene, out / "scene" if not Path(args.scene).exists() else Path(tmp))
+            # the scene the default's choice loaded (a built-in one written where it is written here)
+            path = loaded[2] if loaded is not None else resolve_scene(
+                args.scene, out / "scene" if not Path(args.scene).exists() else Path(tmp))
             planes = parse_planes(args.planes)
             k = max(args.subscenes, 2) if planes else max(args.subscenes, 1)
             divide = divide_from_args(args, k)
             report = solve_to(path, out, config, patch_size=args.patch_size, scale=args.scale,
                               on_progress=on_progress, should_stop=stop.should_stop,
                               width=args.width, height=args.height, divide=divide, planes=planes or None,
-                              up=args.up, two_sided=args.two_sided, workplane=args.workplane)
+                              up=args.up, two_sided=args.two_sided, workplane=args.workplane,
+                              loaded=loaded[:2] if loaded is not None else None)
     finally:
         _restore(previous)
     final = SimpleNamespace(**report["error"]) if report.get("error") else None
@@ -143,8 +148,11 @@ def cmd_solve(args) -> int:
     return 0
 
 
-def _auto_workers(args) -> tuple[int, str]:
-    """--workers by default: from the scene's patch count (estimated before meshing) and the CPUs."""
+def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
+    """--workers by default: from the scene's patch count (estimated before meshing) and the CPUs;
+    and, when it chooses this process, (scene, load seconds, path) for the solve to reuse (a
+    built-in scene is written into ``out``/scene, where the solve writes it: the 3x3 office was
+    written and loaded twice, 0.5-1.2 s more than ``--workers 0``)."""
     from .accuracy import by_accuracy
     from .direct import MAX_ANALYTIC_RECEIVERS
     from .divide import auto_workers, estimate_patches
@@ -152,16 +160,23 @@ def _auto_workers(args) -> tuple[int, str]:
     from .scene import load_scene
 
     if args.planes or args.subscenes > 1:
-        return 0, "solved in this process (--workers 0 by default with --planes or --subscenes)"
+        return 0, "solved in this process (--workers 0 by default with --planes or --subscenes)", None
+    builtin = not Path(args.scene).exists()
+    fresh = builtin and not (out / "scene").exists()
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
-        scene = load_scene(resolve_scene(args.scene, Path(tmp)), scale=args.scale, up=args.up,
-                           two_sided=args.two_sided)
+        path = resolve_scene(args.scene, out / "scene" if builtin else Path(tmp))
+        t0 = time.perf_counter()
+        scene = load_scene(path, scale=args.scale, up=args.up, two_sided=args.two_sided)
+        seconds = time.perf_counter() - t0
     size = args.patch_size if args.patch_size and args.patch_size > 0 else default_patch_size(scene)
     tri = scene.vertices[scene.faces[scene.valid]]
     config = _config(args)
     n = estimate_patches(tri, size)
     gathers = by_accuracy(config) and config.direct and n <= MAX_ANALYTIC_RECEIVERS
-    return auto_workers(n, os.cpu_count() or 1, gathers)
+    workers, choice = auto_workers(n, os.cpu_count() or 1, gathers)
+    if workers > 0 and fresh:  # the workers' run writes its own copy; out/ keeps only what it wrote
+        shutil.rmtree(out / "scene", ignore_errors=True)
+    return workers, choice, (scene, seconds, path) if workers == 0 else None
 
 
 def _note_choice(out: Path, choice: str | None) -> None:

@@ -80,14 +80,19 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
 
 
 def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str | None = None,
-            two_sided: bool = False, timings: dict | None = None):
+            two_sided: bool = False, timings: dict | None = None, loaded: tuple | None = None):
     """Load, validate and mesh a scene: returns (scene, patches, patch_size used).
 
     ``up`` (None: detect) and ``two_sided``: see scene.load_scene.  ``timings`` (a dict)
     receives ``load_s`` (file to validated triangles) and ``mesh_s`` (triangles to patches).
+    ``loaded``: (scene, seconds) of ``path`` loaded with these settings already (`dcrad solve`'s
+    choice of workers loads it first): not loaded twice.
     """
     t0 = time.perf_counter()
-    scene = load_scene(path, scale=scale, up=up, two_sided=two_sided)
+    if loaded is not None:
+        scene, t0 = loaded[0], t0 - loaded[1]
+    else:
+        scene = load_scene(path, scale=scale, up=up, two_sided=two_sided)
     t1 = time.perf_counter()
     size = patch_size if patch_size and patch_size > 0 else default_patch_size(scene)
     patches = scene.patches(size)
@@ -426,19 +431,20 @@ def solve_to(
     up: str | None = None,
     two_sided: bool = False,
     workplane: float = 0.0,
+    loaded: tuple | None = None,
 ) -> dict:
     """Load, solve and write everything to ``out``; return the report dict.
 
     ``divide`` (a DivideConfig) with more than one subscene solves divided, in
     process; one subscene (the default) uses the plain solver: no partition, no twins.
-    ``up``, ``two_sided``, ``workplane``: scene settings (see scene_settings).
+    ``up``, ``two_sided``, ``workplane``: scene settings (see scene_settings).  ``loaded``: see prepare.
     """
     config = config or SolverConfig()
     out = Path(out)
     t0 = time.perf_counter()
     phases: dict = {}
-    scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases)
-    t_load = time.perf_counter() - t0
+    scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases, loaded=loaded)
+    t_load = time.perf_counter() - t0 + (loaded[1] if loaded is not None else 0.0)
 
     t0 = time.perf_counter()
     tracer = None

@@ -262,3 +262,21 @@ def test_z_up_textured_mixed_winding_model(tmp_path, workers):
     rep1 = json.loads((out1 / "report.json").read_text())
     flipped = [w for w in rep1["warnings"] if "flipped" in w]
     assert flipped and any(n in flipped[0] for n in ("floor", "ceiling", "back_wall", "left_wall", "right_wall"))
+
+
+def test_default_workers_on_a_small_scene_is_the_one_process_run(tmp_path):
+    """`dcrad solve` without --workers on a small scene chooses this process (the report says so)
+    and is the `--workers 0` run: the same B bit for bit and the same scene file, which the choice
+    wrote and loaded once for the solve to reuse (it was written and loaded twice)."""
+    outs = {}
+    for flags in ((), ("--workers", "0")):
+        out = tmp_path / ("default" if not flags else "w0")
+        r = run("solve", "cornell", *flags, "--out", out, "--tol", "0.05", "--width", "80", "--height", "60")
+        assert r.returncode == 0, r.stderr
+        outs[flags] = out
+    default, w0 = outs[()], outs[("--workers", "0")]
+    report = json.loads((default / "report.json").read_text())
+    assert report["choices"][0].startswith("solved in this process") and report["divided"] is None
+    assert report["timings"]["load_s"] > 0  # the choice's loading is counted in the solve's timings
+    assert np.array_equal(np.load(default / "radiosity.npz")["patch_B"], np.load(w0 / "radiosity.npz")["patch_B"])
+    assert (default / "scene" / "cornell.obj").read_bytes() == (w0 / "scene" / "cornell.obj").read_bytes()
