@@ -692,9 +692,10 @@ class JobManager:
             books.divided["coordinator_rss_mb"] = dict(mem.phases)
             settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
                                       spec.solver.workplane)
+            made = self._views(views)
             job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
                                     spec.preview_height or 480, extra={"error_curve": self.curve_dict(job)},
-                                    views=self._views(views))
+                                    views=made, painter=self._painter(job, made))
             mem("outputs")
             if shown.barrier != run.barriers:  # the status page shows the result's own preview (not rendered twice)
                 self._final_preview(job, run.barriers)
@@ -773,9 +774,11 @@ class JobManager:
         shared["coordinator_rss_mb"] = dict(mem.phases)
         settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
                                   spec.solver.workplane)
+        made = self._views(views)
         job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
                                 spec.preview_height or 480, extra={"error_curve": self.curve_dict(job),
-                                                                   "shared": shared}, views=self._views(views))
+                                                                   "shared": shared},
+                                views=made, painter=self._painter(job, made))
         mem("outputs")
         if live.barrier != len(phases):  # the status page shows the result's own preview (not rendered twice)
             self._final_preview(job, len(phases))
@@ -817,6 +820,13 @@ class JobManager:
             log.warning("building the outputs' views ahead failed; the outputs build them\n%s",
                         traceback.format_exc())
             return None
+
+    @staticmethod
+    def _painter(job: Job, views):
+        """Who writes the pictures (``write_outputs``' ``painter``): the views process, which holds the
+        views and the corner pairs, while the coordinator writes the npz and PLY; None (the outputs
+        write them) when the views were not made there."""
+        return job.ahead.paint if views is not None and job.ahead is not None else None
 
     @staticmethod
     def _final_preview(job: Job, barrier: int) -> None:
