@@ -229,10 +229,10 @@ def write_pictures(out: Path, patches: Patches, views: OutputViews, lux: np.ndar
     written = {}
     exposure = render.scene_exposure(patches)
     # one smoothing pass for B and the false colour's channels (lux, front coverage, back
-    # coverage), kept in float32 for the GLB and both views: 72 bytes a patch, not 144
-    n = len(patches)
+    # coverage: the smoother's, formed once), kept in float32 for the GLB and both views: 72 bytes
+    # a patch, not 144
     smoother = views.smoother or render.CornerSmoother(patches, keep_pairs=0)
-    both = smoother.apply(np.column_stack([patches.radiosity, lux, np.ones(n), np.zeros(n)]), dtype=np.float32)
+    both = smoother.apply(np.column_stack([patches.radiosity, lux]), dtype=np.float32, coverage=True)
     corners = both[..., :3]
     export.write_glb(out / "scene.glb", patches, corners, exposure=exposure, rotation=rotation)
     written["mesh"] = "scene.glb"

@@ -566,6 +566,10 @@ def test_corner_smoother_kept_pairs_equal_pairs_formed_per_call():
     partly.keep()
     assert len(partly._chunks) == len(kept._chunks) == len(partly.bounds) - 1
     assert partly.apply(values).tobytes() == kept.apply(values).tobytes()
+    # the false colour's coverage channels (means of ones and zeros) without summing them: the same bits
+    appended = kept.apply(np.column_stack([values[:, :4], np.ones(len(box)), np.zeros(len(box))]), np.float32)
+    assert kept.apply(values[:, :4], np.float32, coverage=True).tobytes() == appended.tobytes()
+    assert formed.apply(values[:, :4], np.float32, coverage=True).tobytes() == appended.tobytes()
     rows = np.arange(0, len(box), 3)  # some patches' corners only (a live preview's visible ones)
     some = CornerSmoother(box, rows=rows).apply(values)
     assert np.allclose(some[rows], a[rows], rtol=1e-13, atol=0)
