@@ -255,22 +255,28 @@ class CornerSmoother:
         """(n, C) or (n,) values per patch -> (n, 3 corners, C) ``dtype``: the means in float64, stored
         as ``dtype`` (float32 halves the result: 1.27M patches, 6 channels, 91 MB instead of 183).
 
-        ``coverage``: two channels more, the means of ones (``coverage()``) and of zeros (0): what the
-        same call with two such columns appended gives, bit for bit (reduceat sums each column on
-        its own), without summing them again."""
+        ``coverage``: two channels more, the means of ones and of zeros (0): what the same call with
+        two such columns appended gives, bit for bit (reduceat sums each column on its own); the
+        ones are summed with the values unless ``coverage()`` has them already (formed ahead), and
+        the zeros never."""
         vals = np.asarray(values, np.float64).reshape(self.n, -1)
         nch = vals.shape[1]
+        ones = coverage and self._coverage is None  # summed in this pass: no second pass over the pairs
+        if ones:
+            vals = np.column_stack([vals, np.ones(self.n)])
+        summed = vals.shape[1]
         out = np.empty((self.n, 3, nch + 2 * coverage), dtype)
-        out[..., :nch] = vals[:, None, :]
+        out[..., :summed] = vals[:, None, :]
         if coverage:
-            out[..., nch] = self.coverage()
+            if not ones:
+                out[..., nch] = self._coverage
             out[..., nch + 1] = 0.0
         flat = out.reshape(self.m, -1)
         kept = self._chunks if self._chunks is not None else []
         for i, (lo, hi) in enumerate(zip(self.bounds[:-1], self.bounds[1:])):
             dest, seg, pb, w, ok = kept[i] if i < len(kept) else self._pairs(lo, hi)
             num = np.add.reduceat(w[:, None] * vals[pb], seg, axis=0)
-            flat[dest[ok], :nch] = num[ok]
+            flat[dest[ok], :summed] = num[ok]
         return out
 
     def coverage(self) -> np.ndarray:
