@@ -15,7 +15,8 @@ child had read its arguments: 0.27 s of the 8x8 office's start.
 
 After the views, the child keeps the patch table, the views and the corner pairs (formed at any
 size, in its own memory) and waits for B: ``paint`` sends B and the illuminance once the job is
-solved, and the child writes scene.glb and the preview and illuminance images
+solved (jobs.py does where its own views came without the pairs: above render.KEEP_PAIRS), and
+the child writes scene.glb and the preview and illuminance images
 (``pipeline.write_pictures``, at the coordinator's priority) while the coordinator writes
 radiosity.npz and patches.ply (at the 20x20 office: the smoothing, the GLB, the two views' shading
 and their images, about 6 s of the outputs' single-threaded 8-10 s).  If it fails or dies, the

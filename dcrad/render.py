@@ -221,6 +221,11 @@ class CornerSmoother:
         else:
             self._chunks = None
 
+    @property
+    def kept(self) -> bool:
+        """Every pair kept (``apply`` forms none)."""
+        return self._chunks is not None and len(self._chunks) == len(self.bounds) - 1
+
     def keep(self, stop=None) -> None:
         """Form the pairs and keep them (12 bytes a pair: the 20x20 office's ~23M, 0.33 GB, in a
         process of their own), one chunk at a time, until every chunk is kept or ``stop`` (a

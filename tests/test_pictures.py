@@ -102,3 +102,21 @@ def test_pictures_are_written_here_when_the_views_process_dies_or_fails(tmp_path
         ahead.close()
     assert here == there
     _same_files(tmp_path / "here", tmp_path / "there")
+
+
+def test_the_views_process_paints_only_where_the_coordinator_holds_no_corner_pairs(floor):
+    """jobs.py hands the pictures to the views process when its own views came without the corner
+    pairs (a table above render.KEEP_PAIRS), and writes them itself when they came with them."""
+    from types import SimpleNamespace
+
+    from coordinator.jobs import JobManager
+    from dcrad.render import CornerSmoother
+
+    _, patches = floor
+    job = SimpleNamespace(ahead=SimpleNamespace(paint="paint"))
+    kept, formed = CornerSmoother(patches), CornerSmoother(patches, keep_pairs=0)
+    assert kept.kept and not formed.kept
+    assert JobManager._painter(job, SimpleNamespace(smoother=formed)) == "paint"
+    assert JobManager._painter(job, SimpleNamespace(smoother=kept)) is None
+    assert JobManager._painter(job, None) is None
+    assert JobManager._painter(SimpleNamespace(ahead=None), SimpleNamespace(smoother=formed)) is None
