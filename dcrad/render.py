@@ -177,11 +177,12 @@ class CornerSmoother:
     preview's visible patches, about a seventh of the 8x8 office's.
     """
 
+    _coverage: np.ndarray | None = None  #: coverage(), once formed
+
     def __init__(self, patches, crease_angle_deg: float = 30.0, merge_tol: float = 1e-7,
                  max_pairs: int = 1 << 18, keep_pairs: int | None = None, rows: np.ndarray | None = None):
         n = len(patches)
         self.n = n
-        self._coverage: np.ndarray | None = None
         self.m = m = 3 * n
         self._chunks: list[tuple] | None = []
         if n == 0:
