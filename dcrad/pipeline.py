@@ -30,8 +30,8 @@ from .report import TIMINGS, RunBooks, run_report, write_json
 from .scene import load_scene
 from .solve import GREY_CHOICE, Stats, stiff_choice
 
-__all__ = ["default_patch_size", "prepare", "write_outputs", "solve_to", "resolve_scene", "divided_books",
-           "finish_run"]
+__all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "resolve_scene",
+           "divided_books", "finish_run"]
 
 log = logging.getLogger("dcrad")
 
@@ -202,63 +202,50 @@ def output_views(scene, patches: Patches, width: int = 640, height: int = 480,
     return views
 
 
-def views_of_table(table: dict, names: list, camera: dict | None, width: int = 640, height: int = 480,
-                   live_size: tuple[int, int] | None = None) -> OutputViews:
-    """``output_views(ahead=True)`` of the patch table ``table`` (``Patches.table_arrays``), without
-    Embree scenes: what a coordinator's views process returns (it gets the table, not the job);
-    with ``live_size`` also the live preview's view (``OutputViews.live``)."""
+def table_views(table: dict, names: list, camera: dict | None, width: int = 640, height: int = 480,
+                live_size: tuple[int, int] | None = None) -> tuple[Patches, OutputViews]:
+    """The patch table ``table`` (``Patches.table_arrays``) and its ``output_views(ahead=True)``,
+    without Embree scenes: what a coordinator's views process makes (it gets the table, not the job)
+    and keeps for ``write_pictures``; with ``live_size`` also the live preview's view
+    (``OutputViews.live``)."""
     patches = Patches.from_table(table, names)
     scene = SimpleNamespace(camera=camera)
-    return output_views(scene, patches, width, height, ahead=True, keep_tracers=False, live_size=live_size)
+    return patches, output_views(scene, patches, width, height, ahead=True, keep_tracers=False, live_size=live_size)
 
 
-def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: int = 480,
-                  sections: dict | None = None, workplane: float = 0.0, tracer: Tracer | None = None,
-                  views: OutputViews | None = None) -> dict:
-    """Write every output file; return {name: relative path} of what was written.
+def views_of_table(table: dict, names: list, camera: dict | None, width: int = 640, height: int = 480,
+                   live_size: tuple[int, int] | None = None) -> OutputViews:
+    """``table_views``' views only."""
+    return table_views(table, names, camera, width, height, live_size)[1]
 
-    Meshes are written in the input file's frame (``scene.rotation``); views use one
-    exposure from the lit surfaces (render.scene_exposure).  ``sections`` (a dict)
-    receives the report's ``photometry`` section; ``workplane`` > 0 adds a work-plane
-    grid that many metres above the floor.  ``tracer``: an Embree scene over
-    ``patches.triangles`` to reuse (the solve's; at 1.27M patches a second one cost
-    4 s and 175 MB); None: build one.
+
+def write_pictures(out: Path, patches: Patches, views: OutputViews, lux: np.ndarray, rotation=None,
+                   tracer: Tracer | None = None) -> dict:
+    """Write the outputs that read the smoothed corners: scene.glb, both views' preview.png/.exr and
+    preview_top.png/.exr, illuminance.png (``patches.radiosity``: B; ``lux``: (n,) illuminance of each
+    patch; ``rotation``: ``Scene.rotation``; ``tracer``: for views not traced ahead).
+
+    returns {"written": {name: file} in the report's order, "view": the false colour's view,
+    "legend_max_lux": its scale}.  A coordinator runs this in its views process (coordinator/ahead.py,
+    from B and lux) while it writes the npz and PLY itself: the same function, the same files.
     """
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written = {}
     exposure = render.scene_exposure(patches)
-    views = views if views is not None else output_views(scene, patches, width, height, tracer, top=False)
-    tracer = views.tracer
-    patches.release_corners()  # 72 bytes a patch; the outputs read corners a view or chunk at a time
-    h, gathered = photometry.irradiance(patches, tracer)
-    lux = photometry.to_lux(h)
-    del h
     # one smoothing pass for B and the false colour's channels (lux, front coverage, back
-    # coverage), kept in float32 for the GLB and both views: 72 bytes a patch, not 144
-    n = len(patches)
+    # coverage: the smoother's, formed once), kept in float32 for the GLB and both views: 72 bytes
+    # a patch, not 144
     smoother = views.smoother or render.CornerSmoother(patches, keep_pairs=0)
-    both = smoother.apply(np.column_stack([patches.radiosity, lux, np.ones(n), np.zeros(n)]), dtype=np.float32)
+    both = smoother.apply(np.column_stack([patches.radiosity, lux]), dtype=np.float32, coverage=True)
     corners = both[..., :3]
-    grid = photometry.workplane(patches, workplane, tracer=tracer) if workplane > 0 else None
-    extra = {"valid_input": scene.valid, "patch_E_lux": lux,
-             "patch_L_cd_m2": photometry.luminance_cd(patches.radiosity)}
-    if grid is not None:
-        extra |= {"workplane_points": scene.to_input_frame(grid["points"]), "workplane_lux": grid["lux"]}
-    # zlib lets go of the GIL: the compressed npz is written beside the meshes and views
-    npz = ThreadPoolExecutor(max_workers=1, thread_name_prefix="npz")
-    npz_done = npz.submit(export.write_radiosity_npz, out / "radiosity.npz", patches, len(scene.faces), extra)
-    npz.shutdown(wait=False)
-    written["radiosity"] = "radiosity.npz"
-    export.write_patches_ply(out / "patches.ply", patches, rotation=scene.rotation)
-    written["patches"] = "patches.ply"
-    export.write_glb(out / "scene.glb", patches, corners, exposure=exposure, rotation=scene.rotation)
+    export.write_glb(out / "scene.glb", patches, corners, exposure=exposure, rotation=rotation)
     written["mesh"] = "scene.glb"
 
     camera = views.camera
     # each view is cast once: B (3 channels) and the false colour's (lux, front, back) together;
     # seen from behind, B shows the neutral flag grey and the false colour counts "back"
     flag = np.concatenate([np.multiply(render.BACKFACE_COLOR, 0.9 / exposure), [0.0, 0.0, 1.0 / np.pi]])
-    floor_plan = views.floor_plan
     hits = views.hits or render.trace_view(patches, camera, tracer=tracer, samples=render.SAMPLES)
     both_img = render.shade_view(hits, both, backface_color=flag)
     img = both_img[..., :3]
@@ -267,7 +254,7 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     written["preview_png"] = "preview.png"
     written["preview_exr"] = "preview.exr"
     view = "preview camera"
-    if floor_plan and views.top_camera is not None:
+    if views.floor_plan and views.top_camera is not None:
         top_hits = views.top_hits or render.trace_view(patches, views.top_camera, views.mask,
                                                        views.top_tracer or Tracer.mesh(patches, views.mask),
                                                        samples=render.SAMPLES)
@@ -284,6 +271,63 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     fc = both_img[..., 3:].astype(np.float64) * np.pi
     export.write_png(out / "illuminance.png", photometry.false_colour(fc[..., 0], fc[..., 1], fc[..., 2], top))
     written["illuminance_png"] = "illuminance.png"
+    return {"written": written, "view": view, "legend_max_lux": top}
+
+
+def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: int = 480,
+                  sections: dict | None = None, workplane: float = 0.0, tracer: Tracer | None = None,
+                  views: OutputViews | None = None, painter=None) -> dict:
+    """Write every output file; return {name: relative path} of what was written.
+
+    Meshes are written in the input file's frame (``scene.rotation``); views use one
+    exposure from the lit surfaces (render.scene_exposure).  ``sections`` (a dict)
+    receives the report's ``photometry`` section; ``workplane`` > 0 adds a work-plane
+    grid that many metres above the floor.  ``tracer``: an Embree scene over
+    ``patches.triangles`` to reuse (the solve's; at 1.27M patches a second one cost
+    4 s and 175 MB); None: build one.
+
+    ``painter``: None, or a callable ``painter(out, radiosity, lux, rotation)`` returning a Future of
+    ``write_pictures``' result, written by another process (a coordinator's views process) while this
+    one writes radiosity.npz and patches.ply; if that fails, the pictures are written here (a warning
+    says so) and the files are the same.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = {}
+    views = views if views is not None else output_views(scene, patches, width, height, tracer, top=False)
+    tracer = views.tracer
+    patches.release_corners()  # 72 bytes a patch; the outputs read corners a view or chunk at a time
+    h, gathered = photometry.irradiance(patches, tracer)
+    lux = photometry.to_lux(h)
+    del h
+    painted = None
+    if painter is not None:  # B and lux to the painter first: it works while this writes the arrays
+        try:
+            painted = painter(out, patches.radiosity, lux, scene.rotation)
+        except Exception as exc:  # any failure there: the pictures are written here
+            log.warning("the pictures could not be handed over (%s); writing them here", exc)
+    grid = photometry.workplane(patches, workplane, tracer=tracer) if workplane > 0 else None
+    extra = {"valid_input": scene.valid, "patch_E_lux": lux,
+             "patch_L_cd_m2": photometry.luminance_cd(patches.radiosity)}
+    if grid is not None:
+        extra |= {"workplane_points": scene.to_input_frame(grid["points"]), "workplane_lux": grid["lux"]}
+    # zlib lets go of the GIL: the compressed npz (5 s at 1.27M patches) is written beside the rest
+    npz = ThreadPoolExecutor(max_workers=1, thread_name_prefix="npz")
+    npz_done = npz.submit(export.write_radiosity_npz, out / "radiosity.npz", patches, len(scene.faces), extra)
+    npz.shutdown(wait=False)
+    written["radiosity"] = "radiosity.npz"
+    export.write_patches_ply(out / "patches.ply", patches, rotation=scene.rotation)
+    written["patches"] = "patches.ply"
+    surfaces = photometry.surface_stats(patches, lux) if sections is not None else None  # beside the npz
+    pictures = None
+    if painted is not None:
+        try:
+            pictures = painted.result()
+        except Exception as exc:  # the helper failed or died: the same pictures, written here
+            log.warning("the pictures were not written beside the arrays (%s); writing them here", exc)
+    if pictures is None:
+        pictures = write_pictures(out, patches, views, lux, scene.rotation, tracer)
+    written |= pictures["written"]
     npz_done.result()
     if sections is not None:
         section = {
@@ -292,9 +336,9 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
                       f"{photometry.RHO_GATHER:g} gathered with {photometry.GATHER_RAYS} rays from the solution; "
                       "L = 179 x Y(B) / pi",
             "gathered_patches": int(gathered.sum()),
-            "legend_max_lux": top,
-            "view": view,
-            "surfaces": photometry.surface_stats(patches, lux),
+            "legend_max_lux": pictures["legend_max_lux"],
+            "view": pictures["view"],
+            "surfaces": surfaces,
         }
         if grid is not None:
             section["workplane"] = {k: v for k, v in grid.items() if k not in ("points", "lux")}
@@ -365,7 +409,8 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
 
 
 def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int = 640, height: int = 480,
-               extra: dict | None = None, tracer: Tracer | None = None, views: OutputViews | None = None) -> dict:
+               extra: dict | None = None, tracer: Tracer | None = None, views: OutputViews | None = None,
+               painter=None) -> dict:
     """Write every output and report.json for a finished run; return the report.
 
     The one ending of every path (``solve_to`` single and divided, the
@@ -374,7 +419,7 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     top-level report sections (the service's error curve).  ``books.timings`` gains
     ``outputs_s``.  ``tracer``: the solve's Embree scene over ``books.patches``, reused
     by the outputs (None: they build one); ``views``: the outputs' views built ahead
-    (``output_views``; None: built here).
+    (``output_views``; None: built here); ``painter``: who writes the pictures (``write_outputs``).
     """
     settings = books.config.as_dict() | scene_values
     out = Path(out)
@@ -382,7 +427,7 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     warnings = list(scene.warnings) + books.warnings()
     sections: dict = {}
     outputs = write_outputs(out, scene, books.patches, width, height, sections,
-                            float(settings.get("workplane_m") or 0.0), tracer=tracer, views=views)
+                            float(settings.get("workplane_m") or 0.0), tracer=tracer, views=views, painter=painter)
     books.timings["outputs_s"] = time.perf_counter() - t0
     timings = {k: float(books.timings.get(k, 0.0)) for k in TIMINGS} | books.timings
     report = run_report(scene, books, settings, timings, warnings, outputs)

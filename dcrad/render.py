@@ -177,6 +177,8 @@ class CornerSmoother:
     preview's visible patches, about a seventh of the 8x8 office's.
     """
 
+    _coverage: np.ndarray | None = None  #: coverage(), once formed
+
     def __init__(self, patches, crease_angle_deg: float = 30.0, merge_tol: float = 1e-7,
                  max_pairs: int = 1 << 18, keep_pairs: int | None = None, rows: np.ndarray | None = None):
         n = len(patches)
@@ -216,9 +218,28 @@ class CornerSmoother:
         self.bounds = np.unique(np.concatenate([[0], cuts, [len(k_sel)]]))
         del ends, cuts, k_sel
         if self.pairs <= (KEEP_PAIRS if keep_pairs is None else keep_pairs):
-            self._chunks = [self._pairs(lo, hi) for lo, hi in zip(self.bounds[:-1], self.bounds[1:])]
+            self.keep()
         else:
             self._chunks = None
+
+    @property
+    def kept(self) -> bool:
+        """Every pair kept (``apply`` forms none)."""
+        return self._chunks is not None and len(self._chunks) == len(self.bounds) - 1
+
+    def keep(self, stop=None) -> None:
+        """Form the pairs and keep them (12 bytes a pair: the 20x20 office's ~23M, 0.33 GB, in a
+        process of their own), one chunk at a time, until every chunk is kept or ``stop`` (a
+        ``threading.Event``) is set; ``apply`` uses the chunks kept so far and forms the rest (the
+        same numbers), so it need not wait for this, even from another thread."""
+        kept = self._chunks if self._chunks is not None else []
+        self._chunks = kept
+        for lo, hi in list(zip(self.bounds[:-1], self.bounds[1:]))[len(kept):]:
+            if stop is not None and stop.is_set():
+                return
+            kept.append(self._pairs(lo, hi))
+        if stop is not None:  # ahead of its use (not when kept in the constructor: pickled to the coordinator)
+            self.coverage()
 
     def _pairs(self, lo: int, hi: int):
         """Smoothed corners lo .. hi (of the sorted corners, or of ``sel``): (their corners (c,), run
@@ -236,20 +257,40 @@ class CornerSmoother:
         w /= np.repeat(np.where(ok, den, 1.0), kk)
         return self.order[at], seg, pb, w, ok
 
-    def apply(self, values: np.ndarray, dtype=np.float64) -> np.ndarray:
+    def apply(self, values: np.ndarray, dtype=np.float64, coverage: bool = False) -> np.ndarray:
         """(n, C) or (n,) values per patch -> (n, 3 corners, C) ``dtype``: the means in float64, stored
-        as ``dtype`` (float32 halves the result: 1.27M patches, 6 channels, 91 MB instead of 183)."""
+        as ``dtype`` (float32 halves the result: 1.27M patches, 6 channels, 91 MB instead of 183).
+
+        ``coverage``: two channels more, the means of ones and of zeros (0): what the same call with
+        two such columns appended gives, bit for bit (reduceat sums each column on its own); the
+        ones are summed with the values unless ``coverage()`` has them already (formed ahead), and
+        the zeros never."""
         vals = np.asarray(values, np.float64).reshape(self.n, -1)
         nch = vals.shape[1]
-        out = np.empty((self.n, 3, nch), dtype)
-        out[:] = vals[:, None, :]
-        flat = out.reshape(self.m, nch)
-        chunks = self._chunks if self._chunks is not None else (
-            self._pairs(lo, hi) for lo, hi in zip(self.bounds[:-1], self.bounds[1:]))
-        for dest, seg, pb, w, ok in chunks:
+        ones = coverage and self._coverage is None  # summed in this pass: no second pass over the pairs
+        if ones:
+            vals = np.column_stack([vals, np.ones(self.n)])
+        summed = vals.shape[1]
+        out = np.empty((self.n, 3, nch + 2 * coverage), dtype)
+        out[..., :summed] = vals[:, None, :]
+        if coverage:
+            if not ones:
+                out[..., nch] = self._coverage
+            out[..., nch + 1] = 0.0
+        flat = out.reshape(self.m, -1)
+        kept = self._chunks if self._chunks is not None else []
+        for i, (lo, hi) in enumerate(zip(self.bounds[:-1], self.bounds[1:])):
+            dest, seg, pb, w, ok = kept[i] if i < len(kept) else self._pairs(lo, hi)
             num = np.add.reduceat(w[:, None] * vals[pb], seg, axis=0)
-            flat[dest[ok]] = num[ok]
+            flat[dest[ok], :summed] = num[ok]
         return out
+
+    def coverage(self) -> np.ndarray:
+        """(n, 3) float64 means of ones (the weights' sums: 1 up to round-off), computed once: it
+        depends on the geometry only (a views process forms it ahead, with its pairs)."""
+        if self._coverage is None:
+            self._coverage = self.apply(np.ones(self.n))[..., 0]
+        return self._coverage
 
 
 def corner_radiosity(
@@ -523,7 +564,7 @@ def shade_view(view: ViewHits, corner_values: np.ndarray, backface_color=None,
     cv = cv.reshape(cv.shape[0], 3, -1)
     nch = cv.shape[2]
     size = view.width * view.height
-    total = np.zeros((size, nch))
+    total = np.zeros((nch, size))  # a row per channel: bincount's weights and sums contiguous
     fronts = []
     need_fronts = backface_color is None and not (exposure is not None and exposure > 0)
     for lo in range(0, len(view.pixel), RENDER_CHUNK):
@@ -535,8 +576,15 @@ def shade_view(view: ViewHits, corner_values: np.ndarray, backface_color=None,
         value[back] = 0.0  # shown as the flag colour below
         if need_fronts:
             fronts.append(value[~back])
+        # summed over the pixels the chunk's hits fall on (a chunk is a run of pixels of one jitter
+        # sample, or two): the other pixels would gain +0.0, which leaves any sum as it is (none is
+        # -0.0), and a 640 x 480 bincount per channel and chunk was half of the shading
+        pix = view.pixel[sl]
+        first = int(pix.min()) if len(pix) else 0
+        span = int(pix.max()) - first + 1 if len(pix) else 0
+        rows = np.ascontiguousarray(value.T)
         for c in range(nch):
-            total[:, c] += np.bincount(view.pixel[sl], weights=value[:, c], minlength=size)
+            total[c, first:first + span] += np.bincount(pix - first, weights=rows[c], minlength=span)
     if backface_color is None:
         if exposure is not None and exposure > 0:
             ref = 0.9 / exposure
@@ -547,7 +595,7 @@ def shade_view(view: ViewHits, corner_values: np.ndarray, backface_color=None,
     else:
         flag = np.resize(np.asarray(backface_color, np.float64), nch)
     behind = np.bincount(view.pixel[view.back], minlength=size).astype(np.float64)
-    total += behind[:, None] * flag  # the flag colour stands in for those samples' (zero) value
+    total = total.T + behind[:, None] * flag  # the flag colour stands in for those samples' (zero) value
     img = total / view.samples
     return img.reshape(view.height, view.width, nch).astype(np.float32)
 

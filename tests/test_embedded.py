@@ -23,8 +23,13 @@ import pytest
 
 def _stat(pid: int) -> list[str] | None:
     """Fields of /proc/PID/stat after the command name, or None when the pid is gone."""
+    return _stat_of(f"/proc/{pid}/stat")
+
+
+def _stat_of(path: str) -> list[str] | None:
+    """Fields of a /proc stat file after the command name, or None when it is gone."""
     try:
-        text = Path(f"/proc/{pid}/stat").read_text()
+        text = Path(path).read_text()
     except OSError:
         return None
     return text.rsplit(")", 1)[1].split()
@@ -39,6 +44,15 @@ def children_of(pid: int) -> dict[int, str]:
             if st is not None and int(st[1]) == pid and st[0] != "Z":
                 out[int(entry.name)] = st[19]
     return out
+
+
+def _nices(pid: int) -> list[str]:
+    """The nice of each thread of ``pid``, the main thread's first ([] when it is gone)."""
+    try:
+        tasks = sorted(int(t.name) for t in Path(f"/proc/{pid}/task").iterdir())
+    except OSError:
+        return []
+    return [st[16] for st in (_stat_of(f"/proc/{pid}/task/{t}/stat") for t in tasks) if st is not None]
 
 
 def alive(pid: int, start: str) -> bool:
@@ -159,10 +173,15 @@ def test_a_job_takes_the_views_process_started_ahead(tmp_path):
     for name in ("pixel", "patch", "bc", "back"):
         np.testing.assert_array_equal(getattr(got.hits, name), getattr(want.hits, name))
     assert got.live is not None and got.live.width == 32
-    deadline = time.monotonic() + 30  # the next one lowers itself before it imports anything
-    while time.monotonic() < deadline and (_stat(following.pid) or [""] * 17)[16] != "19":
+    assert job._proc.poll() is None  # it waits for B, to write the pictures (test_pictures.py)
+    job.close()
+    assert job._proc.poll() is not None
+    # the next one's views thread lowers itself before it imports anything; its main thread keeps
+    # the coordinator's priority, for the pictures
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and "19" not in _nices(following.pid):
         time.sleep(0.05)
-    assert (_stat(following.pid) or [""] * 17)[16] == "19"
+    assert "19" in _nices(following.pid) and _nices(following.pid)[0] == "0"
     following.stdin.close()  # as the coordinator's exit would: it ends without a job
     assert following.wait(30) == 0
     following.stdout.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -555,6 +556,20 @@ def test_corner_smoother_kept_pairs_equal_pairs_formed_per_call():
     assert np.allclose(a, b, rtol=1e-13, atol=0)
     assert np.allclose(a[..., :3], corner_radiosity(box, values=values[:, :3]), rtol=1e-13, atol=0)
     assert kept.apply(values[:, 0], dtype=np.float32).shape == (len(box), 3, 1)
+    partly = CornerSmoother(box, max_pairs=7, keep_pairs=0)  # a views process keeping its pairs
+    stop = threading.Event()
+    stop.set()
+    partly.keep(stop)
+    assert partly._chunks == []  # stopped before the first chunk
+    partly._chunks = kept._chunks[:3]  # stopped after three: apply forms the rest, the same numbers
+    assert partly.apply(values).tobytes() == kept.apply(values).tobytes()
+    partly.keep()
+    assert len(partly._chunks) == len(kept._chunks) == len(partly.bounds) - 1
+    assert partly.apply(values).tobytes() == kept.apply(values).tobytes()
+    # the false colour's coverage channels (means of ones and zeros) without summing them: the same bits
+    appended = kept.apply(np.column_stack([values[:, :4], np.ones(len(box)), np.zeros(len(box))]), np.float32)
+    assert kept.apply(values[:, :4], np.float32, coverage=True).tobytes() == appended.tobytes()
+    assert formed.apply(values[:, :4], np.float32, coverage=True).tobytes() == appended.tobytes()
     rows = np.arange(0, len(box), 3)  # some patches' corners only (a live preview's visible ones)
     some = CornerSmoother(box, rows=rows).apply(values)
     assert np.allclose(some[rows], a[rows], rtol=1e-13, atol=0)
