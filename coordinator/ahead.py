@@ -1,4 +1,4 @@
-"""The outputs' views made ahead, in a process of its own at nice 19 (``pipeline.views_of_table``).
+"""The outputs' views made ahead, in a process of its own at nice 19 (``pipeline.table_views``).
 
 What the outputs need that does not depend on B (cameras, both views' primary hits, the
 corner pairs, the live preview's view: about 2.5 CPU s at 201k patches) is made while the

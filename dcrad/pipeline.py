@@ -213,12 +213,6 @@ def table_views(table: dict, names: list, camera: dict | None, width: int = 640,
     return patches, output_views(scene, patches, width, height, ahead=True, keep_tracers=False, live_size=live_size)
 
 
-def views_of_table(table: dict, names: list, camera: dict | None, width: int = 640, height: int = 480,
-                   live_size: tuple[int, int] | None = None) -> OutputViews:
-    """``table_views``' views only."""
-    return table_views(table, names, camera, width, height, live_size)[1]
-
-
 def write_pictures(out: Path, patches: Patches, views: OutputViews, lux: np.ndarray, rotation=None,
                    tracer: Tracer | None = None) -> dict:
     """Write the outputs that read the smoothed corners: scene.glb, both views' preview.png/.exr and
