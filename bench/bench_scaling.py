@@ -123,6 +123,9 @@ class Timed:
     def radiosity(self):
         return self.sub.radiosity()
 
+    def interrupt(self):
+        self.sub.interrupt()
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])

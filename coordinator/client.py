@@ -355,8 +355,8 @@ def cmd_cancel(args) -> int:
     if job.state in TERMINAL:
         print(f"dcrad: job {job.job_id or args.job} had already ended ({job.state}); nothing to cancel")
     else:
-        print(f"dcrad: job {job.job_id or args.job}: cancel requested; it stops at its next barrier and keeps "
-              f"its results so far (`dcrad watch` follows it to the end)")
+        print(f"dcrad: job {job.job_id or args.job}: cancel requested; its workers stop after the batch in flight "
+              f"and it keeps its results so far (`dcrad watch` follows it to the end)")
     return 0
 
 

@@ -306,6 +306,16 @@ class Job:
     prepared: tuple | None = field(default=None, repr=False)
     ahead: ViewsAhead | None = field(default=None, repr=False)  #: the outputs' views' process (ahead.py)
     _waiters: list = field(default_factory=list)  #: (loop, asyncio.Event) of watchers
+    #: callables run (in a thread of their own) when the job is cancelled: the running solve's
+    #: interrupts, so a cancel does not wait for the barrier in flight
+    on_cancel: list = field(default_factory=list, repr=False)
+
+    def request_cancel(self) -> None:
+        """Cancel the job: it stops within a batch per subscene, keeping what it has."""
+        self.cancel.set()
+        hooks = list(self.on_cancel)
+        if hooks:
+            threading.Thread(target=lambda: [f() for f in hooks], name=f"cancel-{self.id}", daemon=True).start()
 
     def summary(self) -> pb.JobSummary:
         end = self.finished or (time.time() if self.started else 0.0)
@@ -651,6 +661,13 @@ class JobManager:
                 job.notify()
                 mem("barrier")
 
+            def interrupt():
+                for h in handles:
+                    h.interrupt()
+
+            job.on_cancel.append(interrupt)
+            if job.cancel.is_set():  # cancelled while it loaded
+                interrupt()
             with ThreadPoolExecutor(max_workers=len(handles)) as ex:
                 run = run_divided(handles, boundaries, self._left(config, resume), divide.batches_per_barrier, ex,
                                   on_barrier=on_barrier, should_stop=job.cancel.is_set,
@@ -704,6 +721,7 @@ class JobManager:
             job.residual = run.ledger.residual()
             job.state = "cancelled" if run.stopped_by == "stopped" else "done"
         finally:
+            job.on_cancel.clear()
             writer.close()
             if display is not None:
                 display.close()

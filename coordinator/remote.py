@@ -215,6 +215,7 @@ class RemoteSubscene:
         self._collected = None
         self._last_batches = 0
         self._last_plan = None
+        self.interrupted = False  #: the job was cancelled: a worker it moves to is told at once
         self._state0 = sub.state()
         #: s of wall time in each kind of rpc (includes the worker's compute for iterate)
         self.rpc_seconds = {"load": 0.0, "iterate": 0.0, "deliver": 0.0, "checkpoint": 0.0}
@@ -324,6 +325,8 @@ class RemoteSubscene:
     # -- the handle interface ------------------------------------------------------
     def _iterate_once(self, n: int, plan=None):
         t0 = time.perf_counter()
+        if self.interrupted:  # a worker taken over after the cancel shoots nothing either
+            self._stub().Interrupt(self.key, timeout=10)
         request = pb.IterateRequest(key=self.key, batches=n, **plan_fields(plan))
         replies = self._stub().Iterate(request, timeout=self.timeout)
         arrays, status = _gather(replies)
@@ -399,6 +402,16 @@ class RemoteSubscene:
     def radiosity(self) -> np.ndarray:
         """(n,3) radiosity of the subscene's patches at the last barrier."""
         return self._radiosity
+
+    def interrupt(self) -> None:
+        """End the worker's doIterations in flight after its current batch (the job was cancelled);
+        a worker gone or never reached is left alone (the job stops at the barrier anyway)."""
+        self.interrupted = True
+        if self.worker is not None:
+            try:
+                self._stub().Interrupt(self.key, timeout=10)
+            except grpc.RpcError as exc:
+                log.info("job %s cell %d: interrupt not delivered: %s", self.job_id, self.cell, exc.code())
 
     def drop(self) -> None:
         """Free the subscene on its worker and what the handle holds (a second call does nothing)."""

@@ -122,7 +122,7 @@ class CoordinatorServicer(pb_grpc.CoordinatorServicer):
     async def Cancel(self, request, context):
         job = await self._job(request.job_id, context)
         if job.state not in TERMINAL:
-            job.cancel.set()
+            job.request_cancel()
         return job.summary()
 
     async def ListJobs(self, request, context):

@@ -245,7 +245,7 @@ async def api_cancel(request):
         raise _Problem(403, "cross-site cancel refused")
     job = _job(request)
     if job.state not in TERMINAL:
-        job.cancel.set()
+        job.request_cancel()
         log.info("job %s: cancel asked from the web page", job.id)
     return _json(summary_dict(job.summary()))
 

@@ -134,6 +134,11 @@ class SubsceneHandle(Protocol):
         """(n,3) B of its clipped patches, as of the last barrier."""
         ...
 
+    def interrupt(self) -> None:
+        """End the doIterations in flight after its current batch, and shoot no more (the job
+        was cancelled); safe to call from another thread, at any time."""
+        ...
+
 
 class Subscene(Solver):
     """Progressive refinement over one cell's patches plus its boundary rectangles.
@@ -173,6 +178,7 @@ class Subscene(Solver):
         self.twin_blocks = 0  #: what they became after coarsening (see ``deliver``)
         #: this barrier's plan from ``run_divided``: the job's Stiffness and U_rest (see ``ambient``)
         self.plan: BarrierPlan | None = None
+        self.interrupted = False  #: set from another thread by ``interrupt``: iterate shoots no more
         self._solid_of = np.ones(max((b.id for b in self.boundaries), default=0) + 1, np.int64)  #: by boundary id
         for b in self.boundaries:
             self._solid_of[b.id] = b.solid
@@ -412,6 +418,8 @@ class Subscene(Solver):
         for i in range(n):
             if deadline is not None and i > 0 and time.perf_counter() >= deadline:
                 break  # the job's time limit, inside the barrier
+            if self.interrupted:
+                break  # the job was cancelled
             if goal > 0 and self.local_residual() <= goal:
                 break
             if isinstance(self.sent, RayParcel) and len(self.sent) >= cap:
@@ -464,6 +472,9 @@ class Subscene(Solver):
 
     def radiosity(self) -> np.ndarray:
         return self.patches.radiosity
+
+    def interrupt(self) -> None:
+        self.interrupted = True
 
 
 def assemble(n_patches: int, area: np.ndarray, parents: list[np.ndarray], pieces: list[Patches],
@@ -675,7 +686,8 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
             run.crossing = min(max((led.residual() / before - f) / (1.0 - f), 0.0), 0.99)
         if on_barrier is not None:
             on_barrier(run)
-        if run.snapshots[-1].rays == run.snapshots[-2].rays and led.residual() > config.tol:
+        stopping = should_stop is not None and should_stop()  # an interrupted barrier may shoot nothing
+        if run.snapshots[-1].rays == run.snapshots[-2].rays and led.residual() > config.tol and not stopping:
             reason = "stalled"  # nothing left to shoot anywhere; should not happen
             break
     run.stopped_by = reason

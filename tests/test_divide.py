@@ -272,3 +272,44 @@ def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatc
     # estimate is honest: within 25% of the measured error
     assert on_err <= 0.055 and abs(on.estimate.rms_refl / on_err - 1) < 0.25, (on_err, on.estimate)
     assert off_err <= 0.055
+
+
+def test_a_cancel_ends_the_barrier_in_flight(office):
+    """Cancelled three batches into barrier 2: the subscene's doIterations stops after the batch
+    in flight, the other subscene shoots nothing more, the books still close, and the run ends
+    "stopped" (not "stalled", though that barrier shot little)."""
+    from dcrad.divide import build_subscenes, run_divided
+
+    _, p, _ = prepare(office)
+    cfg = SolverConfig(tol=1e-12, seed=5, batch_rays=4096, max_rays_per_shot=4096)  # many small batches
+    subs, bnds, _, _ = build_subscenes(p, cfg, DivideConfig(subscenes=2, iterations=200, mode="binned"))
+    cancel, steps = [False], {s.cell: [] for s in subs}  # per subscene: the barrier of each batch
+
+    def counting(sub, first):
+        iterate, step = sub.iterate, sub.step
+        barrier = [0]
+
+        def iterate_counted(n, plan=None):
+            barrier[0] += 1
+            return iterate(n, plan)
+
+        def step_counted():
+            steps[sub.cell].append(barrier[0])
+            if first and steps[sub.cell].count(2) == 3:  # three batches into barrier 2: cancelled
+                cancel[0] = True
+                for s in subs:
+                    s.interrupt()
+            return step()
+
+        sub.iterate, sub.step = iterate_counted, step_counted
+
+    subs.sort(key=lambda s: -s.ledger.emitted.sum())  # the lit one first: it shoots in barrier 1
+    counting(subs[0], True)
+    counting(subs[1], False)
+    run = run_divided(subs, bnds, cfg, 200, should_stop=lambda: cancel[0])  # one after the other
+    first, second = (steps[s.cell] for s in subs)
+    assert run.stopped_by == "stopped" and run.barriers == 2
+    assert first.count(1) > 3 and first.count(2) == 3  # the batch in flight was its last
+    assert second.count(2) == 0  # interrupted before its barrier-2 iterations began
+    assert run.ledger.closure() < 1e-10
+    assert all(s.iterate(5) == 0 for s in subs)  # and shoots no more

@@ -34,7 +34,7 @@ def test_in_process_and_remote_subscenes_are_handles_with_one_buffer_type(cornel
     remote = RemoteSubscene("job", subs[0], WorkerPool())
     for h in (subs[0], remote):
         assert isinstance(h, SubsceneHandle)
-        for name in ("iterate", "collect", "deliver", "state", "radiosity"):
+        for name in ("iterate", "collect", "deliver", "state", "radiosity", "interrupt"):
             want = list(inspect.signature(getattr(SubsceneHandle, name)).parameters)[1:]
             assert list(inspect.signature(getattr(h, name)).parameters)[: len(want)] == want, (type(h), name)
     kind = MODES[mode].buffer

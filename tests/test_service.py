@@ -242,6 +242,31 @@ def test_documented_errors(office, tmp_path):
     assert report["stats"]["stopped_by"] == "stopped" and report["ledger"]["closure"] < 1e-10
 
 
+def test_a_cancel_does_not_wait_for_the_barrier_in_flight(office, tmp_path):
+    """Cancelled as barrier 1 ends: the coordinator interrupts the workers' doIterations (the
+    Interrupt call), so barrier 2 ends after the batches in flight, not after its 100 batches,
+    and the job ends cancelled with closed books and results."""
+    with LocalCluster(workers=2, data=tmp_path / "c") as cluster:
+        job = submit(cluster.address, office, "office.obj", {"tol": 1e-30, "rays_per_power": 1e10, "time_limit": 300},
+                     {"subscenes": 2, "iterations": 100})
+        seen = []
+
+        def cancel_at_the_first_barrier(p):
+            seen.append(p)
+            if p.barrier == 1 and p.job.state == "running":
+                with grpc.insecure_channel(cluster.address) as ch:
+                    pb_grpc.CoordinatorStub(ch).Cancel(pb.JobRef(job_id=job.job_id))
+
+        watch(cluster.address, job.job_id, cancel_at_the_first_barrier)
+        files = fetch(cluster.address, job.job_id)
+    first = next(p for p in seen if p.barrier == 1)
+    assert seen[-1].job.state == "cancelled" and seen[-1].barrier == 2
+    report = json.loads(bytes(files["report.json"]))
+    assert report["stats"]["stopped_by"] == "stopped" and report["ledger"]["closure"] < 1e-10
+    # barrier 1 shot 100 batches a subscene; barrier 2 only what was in flight when the cancel came
+    assert first.rays > 0 and report["stats"]["rays"] - first.rays < 0.5 * first.rays
+
+
 def test_health_service_on_both(tmp_path):
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 

@@ -236,6 +236,12 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         log.info("job %s: %s share %d replied in %.2f s (%.1f MB)", job, header.phase, header.index,
                  time.perf_counter() - t1, sum(np.asarray(v).nbytes for v in out.values()) / 1e6)
 
+    async def Interrupt(self, request, context):
+        sub, _ = self._get(request, context)
+        if sub is not None:  # not under its lock: the Iterate in flight holds it, and stops at its next batch
+            sub.interrupt()
+        return pb.Empty()
+
     async def Drop(self, request, context):
         if request.cell < 0:  # a shared run's patch table
             self.scenes.pop(request.job_id, None)

@@ -394,6 +394,11 @@ class WorkerStub:
                 request_serializer=dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.SerializeToString,
                 response_deserializer=dcrad_dot_v1_dot_dcrad__pb2.Empty.FromString,
                 _registered_method=True)
+        self.Interrupt = channel.unary_unary(
+                '/dcrad.v1.Worker/Interrupt',
+                request_serializer=dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.SerializeToString,
+                response_deserializer=dcrad_dot_v1_dot_dcrad__pb2.Empty.FromString,
+                _registered_method=True)
         self.Share = channel.stream_stream(
                 '/dcrad.v1.Worker/Share',
                 request_serializer=dcrad_dot_v1_dot_dcrad__pb2.ShareRequest.SerializeToString,
@@ -435,6 +440,14 @@ class WorkerServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Interrupt(self, request, context):
+        """Ends the subscene's doIterations in flight after its current batch (its job was cancelled):
+        the Iterate call returns what crossed so far.  Later Iterate calls shoot nothing.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Share(self, request_iterator, context):
         """One share of a shared run; the reply streams its result arrays (direct: a tally; replica:
         the replica's state).  NOT_FOUND when no patch table was sent and none is held for the job.
@@ -468,6 +481,11 @@ def add_WorkerServicer_to_server(servicer, server):
             ),
             'Drop': grpc.unary_unary_rpc_method_handler(
                     servicer.Drop,
+                    request_deserializer=dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.FromString,
+                    response_serializer=dcrad_dot_v1_dot_dcrad__pb2.Empty.SerializeToString,
+            ),
+            'Interrupt': grpc.unary_unary_rpc_method_handler(
+                    servicer.Interrupt,
                     request_deserializer=dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.FromString,
                     response_serializer=dcrad_dot_v1_dot_dcrad__pb2.Empty.SerializeToString,
             ),
@@ -610,6 +628,33 @@ class Worker:
             request,
             target,
             '/dcrad.v1.Worker/Drop',
+            dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.SerializeToString,
+            dcrad_dot_v1_dot_dcrad__pb2.Empty.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Interrupt(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/dcrad.v1.Worker/Interrupt',
             dcrad_dot_v1_dot_dcrad__pb2.SubsceneKey.SerializeToString,
             dcrad_dot_v1_dot_dcrad__pb2.Empty.FromString,
             options,
