@@ -313,3 +313,20 @@ def test_a_cancel_ends_the_barrier_in_flight(office):
     assert second.count(2) == 0  # interrupted before its barrier-2 iterations began
     assert run.ledger.closure() < 1e-10
     assert all(s.iterate(5) == 0 for s in subs)  # and shoots no more
+
+
+def test_crossing_share_does_not_count_a_barrier_cut_short_as_crossing():
+    """A barrier asked to leave a quarter that ended at its cap with half left, 2% of the emitted
+    power crossed: the crossing share is what crossed over what left (not the shortfall); one whose
+    subscenes shot past the quarter keeps the residual's reading (it lands that way again)."""
+    from dcrad.divide import crossing_share
+    from dcrad.energy import Ledger
+
+    def ledger(residual, exported):
+        return Ledger(emitted=np.full(3, 100 / 3), unshot=np.full(3, residual * 100 / 3),
+                      exported=np.full(3, exported * 100 / 3))
+
+    capped = crossing_share(0.4, ledger(0.2 + 0.02, 0.05 + 0.02), 5.0, 0.25)
+    assert capped == pytest.approx(0.02 / (0.4 - 0.22 + 0.02))  # 0.1, where the fall reads 0.4
+    past = crossing_share(0.4, ledger(0.08 + 0.02, 0.07), 5.0, 0.25)
+    assert past == pytest.approx((0.1 / 0.4 - 0.25) / 0.75)  # 0: the batches shot past the goal
