@@ -396,7 +396,8 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
                        f"residual, not a quarter, for the estimate to land just below it (divide.landing_goal)")
     choices.append(describe(config))
     if run.stopped_by == "noise_floor":
-        choices.append(noise_floor_note(run.estimate, config.accuracy))
+        choices.append(noise_floor_note(run.estimate, config.accuracy) + "; a divided run shoots its direct "
+                       "light, where one process (--workers 0) or a shared run gathers it")
     return RunBooks(patches, config, run.ledger, stats, list(run.snapshots), run.snapshot_B, back,
                     choices, dict(timings or {}), divided, estimate=run.estimate,
                     channels=1 if patches.is_grey and len(patches) else 3, stiff=run.stiff)

@@ -330,3 +330,19 @@ def test_crossing_share_does_not_count_a_barrier_cut_short_as_crossing():
     assert capped == pytest.approx(0.02 / (0.4 - 0.22 + 0.02))  # 0.1, where the fall reads 0.4
     past = crossing_share(0.4, ledger(0.08 + 0.02, 0.07), 5.0, 0.25)
     assert past == pytest.approx((0.1 / 0.4 - 0.25) / 0.75)  # 0: the batches shot past the goal
+
+
+def test_a_divided_run_on_its_noise_floor_says_so(tmp_path):
+    """Cornell at 3% in four subscenes: the shot direct light's noise (about 3.8%) stays above the
+    target once every subscene is at its local target; the run stops there as on its noise floor,
+    and the report says what would lower it (it was "stalled", which reads as a fault)."""
+    from dcrad.pipeline import divided_books
+
+    _, p, _ = prepare(scenes.write_builtin("cornell", tmp_path))
+    cfg = SolverConfig(accuracy=0.03, seed=1)
+    divide = DivideConfig(subscenes=4)
+    run, subs, boundaries, part = solve_divided(p, cfg, divide)
+    assert run.stopped_by == "noise_floor" and run.estimate.noise_refl > 0.03
+    assert run.snapshots[-1].rays == run.snapshots[-2].rays  # nothing was left to shoot
+    books = divided_books(run, p, cfg, boundaries, part, divide)
+    assert any(c.startswith("stopped on the noise floor") and "--workers 0" in c for c in books.choices)
