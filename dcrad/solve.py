@@ -253,7 +253,9 @@ class Solver:
         floor = floor if np.isscalar(floor) else np.asarray(floor)[idx]
         counts = np.clip(np.ceil(scalar[idx] / (self.power_per_ray * ray_factor)), floor, cfg.max_rays_per_shot)
         counts = counts.astype(np.int64)
-        fits = np.cumsum(counts) <= cfg.batch_rays
+        # the batch, and what the run's ray budget leaves of it (one shot at least)
+        limit = min(cfg.batch_rays, cfg.max_rays - self.stats.rays) if cfg.max_rays else cfg.batch_rays
+        fits = np.cumsum(counts) <= limit
         fits[:1] = True
         return idx[fits], counts[fits]
 
@@ -465,6 +467,14 @@ class Solver:
         preset = self.preset_direct
         # a pilot on a random share of the receivers decides whether gathering beats shooting
         receivers = np.flatnonzero(p.rho.any(axis=1))
+        budget = cfg.max_rays - self.stats.rays if cfg.max_rays else 0
+        if preset is None and cfg.max_rays and shadow * len(receivers) > budget:
+            # the gather's shadow rays alone would overrun the ray budget (the office at --max-rays
+            # 1e5: 611k rays, all of them the gather's): the emitters are shot, within it
+            self.choices.append(f"direct light shot, not gathered: {shadow} shadow rays for each of "
+                                f"{len(receivers)} receiving patches are more than the ray budget leaves "
+                                f"({max(budget, 0)} of --max-rays {cfg.max_rays})")
+            return 0
         size = min(len(receivers), max(64, int(PILOT_SHARE * len(receivers))))
         pilot = np.sort(self.rng.choice(receivers, size, replace=False))
         t0 = time.perf_counter()
