@@ -326,7 +326,7 @@ class RemoteSubscene:
     def _iterate_once(self, n: int, plan=None):
         t0 = time.perf_counter()
         if self.interrupted:  # a worker taken over after the cancel shoots nothing either
-            self._stub().Interrupt(self.key, timeout=10)
+            self._tell_interrupt()
         request = pb.IterateRequest(key=self.key, batches=n, **plan_fields(plan))
         replies = self._stub().Iterate(request, timeout=self.timeout)
         arrays, status = _gather(replies)
@@ -409,9 +409,12 @@ class RemoteSubscene:
         self.interrupted = True
         if self.worker is not None:
             try:
-                self._stub().Interrupt(self.key, timeout=10)
+                self._tell_interrupt()
             except grpc.RpcError as exc:
                 log.info("job %s cell %d: interrupt not delivered: %s", self.job_id, self.cell, exc.code())
+
+    def _tell_interrupt(self) -> None:
+        self._stub().Interrupt(self.key, timeout=10)
 
     def drop(self) -> None:
         """Free the subscene on its worker and what the handle holds (a second call does nothing)."""

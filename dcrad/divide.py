@@ -585,10 +585,9 @@ def landing_goal(estimate: Estimate | None, accuracy: float, crossing: float) ->
     return float(min(f, MAX_GOAL)) if f >= MIN_GOAL else 0.0
 
 
-def crossing_share(before: float, led: Ledger, exported: float, f: float) -> float:
+def crossing_share(previous: Ledger, led: Ledger, f: float) -> float:
     """``DividedRun.crossing`` after a barrier that asked each subscene to leave a share ``f`` of its
-    residual: ``before`` the job's residual and ``exported`` (W) its exported power as it began, ``led``
-    the job's ledger at its end.
+    residual: ``previous`` the job's ledger as it began, ``led`` at its end.
 
     Two readings, the lower kept.  From how far the residual fell, (after / before - f) / (1 - f):
     right when the subscenes leave f or a little less (a batch shoots past the goal: the 3x3 office,
@@ -596,10 +595,10 @@ def crossing_share(before: float, led: Ledger, exported: float, f: float) -> flo
     right when a barrier ends above its goal, at the forward cap or its batch count, which the first
     reading counts as crossing (the 20x20 office's last barrier then took 0.47 for 0.62 of the
     residual, and landed at 4.63% for a 5% target; with the second, 0.62 and 4.86%)."""
-    after = led.residual()
+    before, after = previous.residual(), led.residual()  # before > 0 (the caller's check)
     fell = (after / before - f) / (1.0 - f)
     emitted = float(led.emitted.sum())
-    crossed = (float(led.exported.sum()) - exported) / emitted if emitted > 0 else 0.0
+    crossed = float((led.exported - previous.exported).sum()) / emitted if emitted > 0 else 0.0
     left = before - after + crossed  # shot away, or handed over
     share = min(fell, crossed / left) if left > 0 else fell
     return min(max(share, 0.0), 0.99)
@@ -690,7 +689,7 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
         goal = landing_goal(run.estimate, config.accuracy, run.crossing) if landing else 0.0
         plan = barrier_plan(run.states, config, max(left, 1e-9) if config.time_limit else 0.0, goal)
         run.goals.append(goal)
-        before, exported = led.residual(), float(led.exported.sum())
+        previous = led
         if plan and next(iter(plan.values())).stiffness.active:
             run.stiff = next(iter(plan.values())).stiffness
         list(executor.map(lambda h, plan=plan: h.iterate(iterations, plan.get(h.cell)), handles))
@@ -702,8 +701,8 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
             h.deliver(outgoing.pop(h.cell) if h.cell in outgoing else mode.empty())
         run.barriers += 1
         led = barrier_snapshot([h.state() for h in handles])
-        if before > 0:
-            run.crossing = crossing_share(before, led, exported, goal or BARRIER_GOAL)
+        if previous.residual() > 0:
+            run.crossing = crossing_share(previous, led, goal or BARRIER_GOAL)
         if on_barrier is not None:
             on_barrier(run)
         stopping = should_stop is not None and should_stop()  # an interrupted barrier may shoot nothing

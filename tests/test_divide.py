@@ -326,9 +326,10 @@ def test_crossing_share_does_not_count_a_barrier_cut_short_as_crossing():
         return Ledger(emitted=np.full(3, 100 / 3), unshot=np.full(3, residual * 100 / 3),
                       exported=np.full(3, exported * 100 / 3))
 
-    capped = crossing_share(0.4, ledger(0.2 + 0.02, 0.05 + 0.02), 5.0, 0.25)
+    previous = ledger(0.4, 0.05)  # residual 0.4, 5 W exported so far
+    capped = crossing_share(previous, ledger(0.2 + 0.02, 0.05 + 0.02), 0.25)
     assert capped == pytest.approx(0.02 / (0.4 - 0.22 + 0.02))  # 0.1, where the fall reads 0.4
-    past = crossing_share(0.4, ledger(0.08 + 0.02, 0.07), 5.0, 0.25)
+    past = crossing_share(previous, ledger(0.08 + 0.02, 0.07), 0.25)
     assert past == pytest.approx((0.1 / 0.4 - 0.25) / 0.75)  # 0: the batches shot past the goal
 
 
