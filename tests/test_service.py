@@ -13,6 +13,7 @@ import json
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -243,21 +244,29 @@ def test_documented_errors(office, tmp_path):
 
 
 def test_a_cancel_does_not_wait_for_the_barrier_in_flight(office, tmp_path):
-    """Cancelled as barrier 1 ends: the coordinator interrupts the workers' doIterations (the
+    """Cancelled a while into barrier 2: the coordinator interrupts the workers' doIterations (the
     Interrupt call), so barrier 2 ends after the batches in flight, not after its 100 batches,
     and the job ends cancelled with closed books and results."""
     with LocalCluster(workers=2, data=tmp_path / "c") as cluster:
         job = submit(cluster.address, office, "office.obj", {"tol": 1e-30, "rays_per_power": 1e10, "time_limit": 300},
                      {"subscenes": 2, "iterations": 100})
-        seen = []
+        seen, timers = [], []
 
-        def cancel_at_the_first_barrier(p):
+        def cancel():
+            with grpc.insecure_channel(cluster.address) as ch:
+                pb_grpc.CoordinatorStub(ch).Cancel(pb.JobRef(job_id=job.job_id))
+
+        def cancel_in_the_second_barrier(p):
             seen.append(p)
             if p.barrier == 1 and p.job.state == "running":
-                with grpc.insecure_channel(cluster.address) as ch:
-                    pb_grpc.CoordinatorStub(ch).Cancel(pb.JobRef(job_id=job.job_id))
+                # a quarter of the job's time so far on: barrier 2 (as long as barrier 1) is in
+                # flight, not about to start (a cancel before it starts stops the run at barrier 1)
+                timers.append(threading.Timer(0.25 * p.job.elapsed_s, cancel))
+                timers[-1].start()
 
-        watch(cluster.address, job.job_id, cancel_at_the_first_barrier)
+        watch(cluster.address, job.job_id, cancel_in_the_second_barrier)
+        for t in timers:
+            t.join()
         files = fetch(cluster.address, job.job_id)
     first = next(p for p in seen if p.barrier == 1)
     assert seen[-1].job.state == "cancelled" and seen[-1].barrier == 2
