@@ -58,7 +58,7 @@ from .patches import Patches
 from .rays import Tracer
 from .report import RunBooks
 from .shooters import spatial_order
-from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, top_up
+from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, top_up, within_budget
 
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
@@ -414,10 +414,15 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     if not stopped and should_stop is not None and should_stop():
         stopped = "stopped"
     t1 = time.perf_counter()
-    if first >= 2 and stopped == "" and patches.rho.any():
+    receivers = int(patches.rho.any(axis=1).sum())
+    more = within_budget(first + first % 2, cfg.max_rays, shot_rays, receivers)
+    budget_cut = more < first
+    cut = [f"ray budget: the final gather cut to {more} rays per receiving patch (planned {first}), what "
+           f"--max-rays {cfg.max_rays} leaves after {shot_rays} rays"
+           + ("; not gathered: B is the shot solution" if more < 2 else "")] if budget_cut and not stopped else []
+    if more >= 2 and stopped == "" and receivers:
         fg = FinalGather(patches, None, shot.diff, shot.direct, shot.direct_a, cfg.batch_rays)
         pos = [np.searchsorted(fg.rec, rows) for rows in parts]
-        more = first + first % 2
         while True:
             rounds.append(more)
             for (sum_a, sum_b, traced), at in zip(shares.gather(shot, parts, rounds), pos):
@@ -432,20 +437,21 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
                 on_phase("gather", time.perf_counter() - t0, shot_rays + gather_rays, est)
             if est.rms_refl <= cfg.accuracy or len(rounds) >= FINAL_ROUNDS:
                 break
-            if (cfg.max_rays and shot_rays + gather_rays >= cfg.max_rays) or (
-                    should_stop is not None and should_stop()):
+            if should_stop is not None and should_stop():
                 break
             if cfg.time_limit and time.perf_counter() - t0 >= cfg.time_limit:
                 break
-            more = top_up(sum(rounds), first, est.rms_refl, cfg.accuracy)
+            want = top_up(sum(rounds), first, est.rms_refl, cfg.accuracy)
+            want += want % 2
+            more = within_budget(want, cfg.max_rays, shot_rays + gather_rays, receivers)
+            budget_cut = budget_cut or more < want
             if more < 2:
                 break
-            more += more % 2
     seconds["gather_s"] = time.perf_counter() - t1
     wall = time.perf_counter() - t0
     rays = shot_rays + gather_rays
     if not stopped:
-        stopped = "accuracy" if est.rms_refl <= cfg.accuracy else "noise_floor"
+        stopped = "accuracy" if est.rms_refl <= cfg.accuracy else "ray_budget" if budget_cut else "noise_floor"
     stats = Stats(shots=sum(r.shots for r in replicas), rays=rays, batches=sum(r.batches for r in replicas),
                   trace_seconds=float(sum(r.trace_seconds for r in replicas)), wall_seconds=wall, stopped_by=stopped)
     if rounds:
@@ -453,7 +459,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
                                   finite(est.rms), finite(est.rms_refl)))
         snapshot_B.append(patches.radiosity.copy())
     choices = [c for c in replicas[0].choices if not c.startswith(("direct light gathered", "reflected light shot",
-                                                                    "final gather"))]
+                                                                    "final gather"))] + cut
     return SharedRun(k, shot.ledger, shot.tallies, est, stats, replicas, direct_rays, gather_rays, rounds, seconds,
                      snapshots, snapshot_B, choices)
 

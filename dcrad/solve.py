@@ -70,7 +70,7 @@ from .direct import (
     shadow_rays_for,
 )
 from .energy import Ledger
-from .final import FinalGather
+from .final import BRIGHT_SHARE, FinalGather
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
@@ -183,6 +183,7 @@ class Solver:
         #: gather rays per receiver of the final gather of the indirect light (final.py; 0: none);
         #: set when the direct light is gathered from exact form factors in accuracy mode
         self.final_rays = 0
+        self.budget_cut = False  #: the final gather was cut to what --max-rays left (``within_budget``)
         #: the final gather has run (it runs once, when the shooting has shot nearly all light)
         self.finalised = False
         self._final: FinalGather | None = None
@@ -573,17 +574,27 @@ class Solver:
         """The final gather and its top-up rounds in accuracy mode: while the estimate is above the
         target, more rays per receiver for (estimate / target)^2 x FINAL_MARGIN of them in all (as if
         the noise were all the gather's sampling), at most FINAL_ROUNDS rounds and 8x the first round's rays."""
-        first = self.final_rays
-        self.final(first)
         cfg = self.config
+        first = self.final_rays
+        receivers = int(self.patches.rho.any(axis=1).sum())
+        cut = within_budget(first, cfg.max_rays, self.stats.rays, receivers)
+        if cut < first:
+            self.budget_cut = True
+            self.choices.append(f"ray budget: the final gather cut to {cut} rays per receiving patch (planned "
+                                f"{first}), what --max-rays {cfg.max_rays} leaves after {self.stats.rays} rays"
+                                + ("; not gathered: B is the shot solution" if cut < 2 else ""))
+        self.final(cut)
         for _ in range(FINAL_ROUNDS - 1):
             if not by_accuracy(cfg) or self._final is None:
                 return
             err = self.target_error()
             if err <= cfg.accuracy:
                 return
-            more = top_up(2 * self._final.per_half, first, err, cfg.accuracy)
-            if more < 2 or (cfg.max_rays and self.stats.rays >= cfg.max_rays):
+            want = top_up(2 * self._final.per_half, first, err, cfg.accuracy)
+            more = within_budget(want, cfg.max_rays, self.stats.rays, receivers)
+            if more < want:
+                self.budget_cut = True
+            if more < 2:
                 return
             if cfg.time_limit and self.elapsed() >= cfg.time_limit:
                 return
@@ -688,7 +699,8 @@ class Solver:
         if (reason == "final_gather" or (self.final_pending() and reason == "tolerance")) and not self.defer_final:
             self.finish()
             if by_accuracy(self.config):
-                reason = "accuracy" if self.target_error() <= self.config.accuracy else "noise_floor"
+                met = self.target_error() <= self.config.accuracy
+                reason = "accuracy" if met else "ray_budget" if self.budget_cut else "noise_floor"
         self.recount()
         self.snapshot(force=True)
         self.stats.stopped_by = reason
@@ -722,6 +734,17 @@ class Solver:
         """Warnings about the run: flipped normals (back-face share of shot power), escaped light."""
         return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
                                                                                                   self.patches)
+
+
+def within_budget(rays: int, max_rays: int, used: int, receivers: int) -> int:
+    """Gather rays per receiver of a final round (``rays``) cut to what ``max_rays`` leaves after
+    ``used``, even (0: not two fit).  A round of r rays traces r cosine rays a receiver and at
+    most BRIGHT_SHARE x r area samples of the bright set (final.FinalGather)."""
+    if not max_rays:
+        return rays
+    fit = int((max_rays - used) / (max(receivers, 1) * (1.0 + BRIGHT_SHARE)))
+    fit = min(rays, fit)
+    return max(fit - fit % 2, 0)
 
 
 def top_up(done: int, first: int, err: float, target: float) -> int:

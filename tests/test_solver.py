@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -302,3 +303,32 @@ def test_a_ray_budget_below_the_direct_gather_is_kept(tmp_path, budget):
     assert budget <= st.rays <= budget + cfg.max_rays_per_shot
     shot = [c for c in s.choices if c.startswith("direct light shot, not gathered")]
     assert bool(shot) == (budget < 611_000) and s.ledger.closure() < 1e-10
+
+
+def test_the_final_gather_keeps_to_the_ray_budget(tmp_path):
+    """The office at 2% under ``max_rays`` 3e6: the shooting ends below the budget, then the
+    planned final gather (124 rays a receiving patch) would overrun it (it traced 4.67M rays).
+    The gather is cut to what the budget leaves, the run stops by the budget, the report says
+    so, and the shared run over two workers keeps to it the same way."""
+    import scenes
+    from dcrad.pipeline import prepare
+    from dcrad.share import LocalShares, run_shared
+
+    budget = 3_000_000
+    _, p, _ = prepare(scenes.write_builtin("office", tmp_path))
+    receivers = int(p.rho.any(axis=1).sum())
+    cfg = SolverConfig(accuracy=0.02, max_rays=budget, seed=2)
+    s = Solver(p, cfg)
+    st = s.run()
+    line = next(c for c in s.choices if c.startswith("ray budget: the final gather cut"))
+    cut, planned, used = (int(x) for x in re.findall(r"cut to (\d+) rays .*planned (\d+)\).* after (\d+) rays",
+                                                     line)[0])
+    assert used + planned * receivers > budget >= st.rays > used  # it would have overrun; the cut gathered
+    assert 2 <= cut < planned and s._final is not None and 2 * s._final.per_half >= cut  # (a top-up may fit)
+    assert st.stopped_by == "ray_budget" and s.ledger.closure() < 1e-10
+
+    p.reset()
+    run = run_shared(p, cfg, 2, LocalShares(p, cfg))
+    assert run is not None and run.stats.rays <= budget and run.stats.stopped_by == "ray_budget"
+    assert run.rounds and run.rounds[0] < planned
+    assert any(c.startswith("ray budget: the final gather cut") for c in run.choices)
