@@ -740,11 +740,8 @@ def within_budget(rays: int, max_rays: int, used: int, receivers: int) -> int:
     """Gather rays per receiver of a final round (``rays``) cut to what ``max_rays`` leaves after
     ``used``, even (0: not two fit).  A round of r rays traces r cosine rays a receiver and at
     most BRIGHT_SHARE x r area samples of the bright set (final.FinalGather)."""
-    if not max_rays:
-        return rays
-    fit = int((max_rays - used) / (max(receivers, 1) * (1.0 + BRIGHT_SHARE)))
-    fit = min(rays, fit)
-    return max(fit - fit % 2, 0)
+    fit = int((max_rays - used) / (max(receivers, 1) * (1.0 + BRIGHT_SHARE))) if max_rays else rays
+    return rays if fit >= rays else max(fit - fit % 2, 0)
 
 
 def top_up(done: int, first: int, err: float, target: float) -> int:

@@ -332,3 +332,14 @@ def test_the_final_gather_keeps_to_the_ray_budget(tmp_path):
     assert run is not None and run.stats.rays <= budget and run.stats.stopped_by == "ray_budget"
     assert run.rounds and run.rounds[0] < planned
     assert any(c.startswith("ray budget: the final gather cut") for c in run.choices)
+
+
+def test_within_budget_cuts_a_round_to_what_the_budget_leaves():
+    """r rays a receiver cost up to r (1 + BRIGHT_SHARE) rays: 1000 rays left for 10 receivers
+    fit 83 (82, even); a round that fits, or no budget, is left alone (odd too); none left: 0."""
+    from dcrad.final import BRIGHT_SHARE
+    from dcrad.solve import within_budget
+
+    assert within_budget(124, 1000, 0, 10) == 82 == 2 * int(1000 / (10 * (1 + BRIGHT_SHARE)) / 2)
+    assert within_budget(125, 0, 10, 100) == 125 and within_budget(125, 10**9, 10, 100) == 125
+    assert within_budget(124, 3000, 0, 10) == 124 and within_budget(124, 10, 20, 10) == 0
