@@ -516,6 +516,7 @@ class JobManager:
             shutil.rmtree(job.root, ignore_errors=True)
             raise DcradError(f"the upload has no file '{spec.scene}' (the scene named in the job)")
         try:
+            render.check_image_size(spec.preview_width or 640, spec.preview_height or 480)
             t0 = time.perf_counter()
             phases: dict[str, float] = {}
             scene, patches, size = prepare(scene_dir / spec.scene, spec.solver.patch_size or None,

@@ -104,7 +104,9 @@ def cmd_solve(args) -> int:
     from .errors import ConfigError
     from .pipeline import resolve_scene, solve_to
     from .progress import ProgressBar
+    from .render import check_image_size
 
+    check_image_size(args.width, args.height)
     choice, loaded = None, None
     if args.workers is None:  # the default: divide only where it pays
         args.workers, choice, loaded = _auto_workers(args, Path(args.out))

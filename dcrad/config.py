@@ -152,9 +152,15 @@ class DivideConfig:
         return self.max_iterations if self.adaptive else self.iterations
 
     def __post_init__(self):
-        if (self.subscenes < 1 or self.iterations < 0 or self.max_iterations < 1 or self.solid < 1
-                or self.cell_size < 0 or self.mode not in BOUNDARY_MODES):
-            raise ConfigError(f"invalid divide setting: {self}")
+        bad = [f"{name}={getattr(self, name)!r} must be {rule}" for name, ok, rule in (
+            ("subscenes", self.subscenes >= 1, ">= 1"),
+            ("iterations", self.iterations >= 0, ">= 0 (0: adaptive)"),
+            ("max_iterations", self.max_iterations >= 1, ">= 1"),
+            ("solid", self.solid >= 1, ">= 1"),
+            ("cell_size", self.cell_size >= 0, ">= 0 (0: automatic)"),
+            ("mode", self.mode in BOUNDARY_MODES, f"one of {', '.join(BOUNDARY_MODES)}")) if not ok]
+        if bad:
+            raise ConfigError(f"invalid divide setting: {'; '.join(bad)}")
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -19,6 +19,8 @@ from .rays import MISS, Tracer
 
 __all__ = [
     "Camera",
+    "check_image_size",
+    "MAX_IMAGE_SIDE",
     "BACKFACE_COLOR",
     "corner_radiosity",
     "CornerSmoother",
@@ -34,6 +36,17 @@ __all__ = [
     "luminance",
     "scene_exposure",
 ]
+
+#: the largest preview side in pixels (a 8192 x 8192 view is 67M primary rays and 1.6 GB of hits)
+MAX_IMAGE_SIDE = 8192
+
+
+def check_image_size(width: int, height: int) -> None:
+    """ConfigError unless both sides of a preview are whole pixels in 1 .. MAX_IMAGE_SIDE."""
+    for name, v in (("width", width), ("height", height)):
+        if not 1 <= v <= MAX_IMAGE_SIDE:
+            raise ConfigError(f"preview {name} {v} pixels: must be 1 to {MAX_IMAGE_SIDE}")
+
 
 #: colour of one-sided surfaces seen from behind (flipped normals, or the outside of a
 #: room): a flat neutral grey, as a fraction of the reference radiance (the radiance the

@@ -135,6 +135,43 @@ def test_too_many_subscenes_for_the_scene(tmp_path, cluster):
     assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "1000 subscenes" in e.value.details()
 
 
+ABSURD = {  # flag -> what the one line must name
+    ("--patch-size", "-1"): "--patch-size -1",
+    ("--patch-size", "nan"): "--patch-size nan",
+    ("--patch-size", "0.0001"): "patches",  # about 3e8 patches: it ran out of memory meshing
+    ("--width", "0"): "preview width 0",  # it failed naming a camera vector of nan
+    ("--height", "100000"): "preview height 100000",  # it rendered a 640 x 100000 preview
+    ("--iterations", "-3"): "iterations=-3",  # it printed the whole DivideConfig
+}
+
+
+@pytest.mark.parametrize("flag", sorted(ABSURD))
+def test_absurd_flags_are_one_line_on_both_paths(tmp_path, cluster, flag):
+    """Each exits 2 before any work with one line naming the flag, in process and through
+    the service (the preview size and patch size travel in the job spec, the coordinator checks
+    them before meshing; a width of 0 there means the default)."""
+    path = _away_scene(tmp_path / "scene", "down")
+    extra = ("--subscenes", "2") if flag[0] == "--iterations" else ()
+    r = dcrad("solve", str(path), "--workers", "0", *flag, *extra, "--out", str(tmp_path / "o"))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("dcrad: error: "), r.stderr
+    assert ABSURD[flag] in lines[0], lines[0]
+    assert not (tmp_path / "o" / "radiosity.npz").exists()
+    if flag[0] in ("--patch-size", "--iterations"):
+        solver = {"patch_size": float(flag[1])} if flag[0] == "--patch-size" else {}
+        divide = {"iterations": int(flag[1]), "subscenes": 2} if flag[0] == "--iterations" else {}
+        with pytest.raises(grpc.RpcError) as e:
+            submit(cluster.address, path.parent, path.name, solver, divide)
+    elif flag[0] == "--height":
+        from coordinator import client
+
+        with pytest.raises(grpc.RpcError) as e:
+            client.submit(cluster.address, path, {}, {}, (640, int(flag[1])))
+    else:
+        return
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and ABSURD[flag] in e.value.details()
+
+
 def test_scenes_takes_the_parameters_solve_takes(tmp_path):
     r = dcrad("scenes", "office:rows=1,cols=2", "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr
