@@ -41,6 +41,9 @@ def setting(default, help: str, flag: bool = True):
     return field(default=default, metadata={"help": help, "flag": flag})
 
 
+#: the most rays of one batch (Embree call): 2^23 rays of about 200 bytes each in flight is 1.7 GB
+MAX_BATCH_RAYS = 1 << 23
+
 @dataclass(frozen=True)
 class SolverConfig:
     """Progressive-refinement settings; each field's help says what it means.
@@ -106,6 +109,10 @@ class SolverConfig:
              f"need 1 <= min_rays ({self.min_rays}) <= max_rays_per_shot ({self.max_rays_per_shot})")
         need(self.batch_rays >= self.max_rays_per_shot,
              f"batch_rays={self.batch_rays} must be >= max_rays_per_shot={self.max_rays_per_shot}")
+        need(self.batch_rays <= MAX_BATCH_RAYS,
+             f"batch_rays={self.batch_rays} must be <= {MAX_BATCH_RAYS} (a batch's rays are held in memory at once, "
+             f"about 200 bytes each)")
+        need(0 <= self.seed < 2**63, f"seed={self.seed} must be in [0, 2^63)")
         need(self.max_shooters >= 1, f"max_shooters={self.max_shooters} must be >= 1")
         need(self.snapshot_factor > 1.0, f"snapshot_factor={self.snapshot_factor} must be > 1")
         need(self.snapshot_mb > 0, f"snapshot_mb={self.snapshot_mb} must be > 0")

@@ -142,6 +142,8 @@ ABSURD = {  # flag -> what the one line must name
     ("--width", "0"): "preview width 0",  # it failed naming a camera vector of nan
     ("--height", "100000"): "preview height 100000",  # it rendered a 640 x 100000 preview
     ("--iterations", "-3"): "iterations=-3",  # it printed the whole DivideConfig
+    ("--seed", "-1"): "seed=-1",  # a traceback from numpy's random streams
+    ("--batch-rays", "1000000000000"): "batch_rays=1000000000000",  # accepted: a batch is held in memory whole
 }
 
 
