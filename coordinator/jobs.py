@@ -522,7 +522,7 @@ class JobManager:
             scene, patches, size = prepare(scene_dir / spec.scene, spec.solver.patch_size or None,
                                            spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
                                            timings=phases)
-            solver_config(spec.solver)
+            resolve(solver_config(spec.solver), len(patches))  # an accuracy beyond reach is refused now
             check_subscenes(self._divide(spec, 1).subscenes, len(patches))
             # kept for the job's run (meshing a scene twice cost 0.4 s at 201k patches)
             job.prepared = (scene, patches, size, {"load_and_mesh_s": time.perf_counter() - t0, **phases})

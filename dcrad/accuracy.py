@@ -32,9 +32,12 @@ unless given, as before the target existed.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from .config import SolverConfig
+from .config import MAX_RAYS_PER_POWER, SolverConfig
+from .errors import ConfigError
 
 __all__ = ["by_accuracy", "resolve", "rays_for", "LEGACY_TOL", "LEGACY_RAYS_PER_POWER", "MAX_PASSES",
            "noise_floor", "residual_goal", "pass_target", "describe", "noise_floor_note", "FinalPlan",
@@ -129,7 +132,13 @@ def resolve(config: SolverConfig, patches: int | None = None) -> SolverConfig:
     if by_accuracy(config):
         if config.rays_per_power > 0 or patches is None:
             return config
-        return config.replace(rays_per_power=rays_for(patches, config.accuracy))
+        rays = rays_for(patches, config.accuracy)
+        if rays > MAX_RAYS_PER_POWER:
+            least = math.sqrt(RAYS_PER_PATCH * max(patches, 1) / MAX_RAYS_PER_POWER)
+            raise ConfigError(f"--accuracy {config.accuracy:g} for {patches} patches needs about {rays:.2g} rays "
+                              f"per emitted power, more than {MAX_RAYS_PER_POWER:.0e} (months of tracing); "
+                              f"ask for {least:.2g} or more")
+        return config.replace(rays_per_power=rays)
     return config.replace(tol=config.tol or LEGACY_TOL, accuracy=0.0,
                           rays_per_power=config.rays_per_power or LEGACY_RAYS_PER_POWER)
 

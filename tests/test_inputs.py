@@ -144,6 +144,8 @@ ABSURD = {  # flag -> what the one line must name
     ("--iterations", "-3"): "iterations=-3",  # it printed the whole DivideConfig
     ("--seed", "-1"): "seed=-1",  # a traceback from numpy's random streams
     ("--batch-rays", "1000000000000"): "batch_rays=1000000000000",  # accepted: a batch is held in memory whole
+    ("--accuracy", "1e-07"): "--accuracy 1e-07",  # ran on with no end in sight (bias 40% after 120 s)
+    ("--rays-per-power", "1e+30"): "rays_per_power=1e+30",  # the same
 }
 
 
@@ -159,8 +161,9 @@ def test_absurd_flags_are_one_line_on_both_paths(tmp_path, cluster, flag):
     assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("dcrad: error: "), r.stderr
     assert ABSURD[flag] in lines[0], lines[0]
     assert not (tmp_path / "o" / "radiosity.npz").exists()
-    if flag[0] in ("--patch-size", "--iterations"):
-        solver = {"patch_size": float(flag[1])} if flag[0] == "--patch-size" else {}
+    if flag[0] in ("--patch-size", "--iterations", "--accuracy", "--rays-per-power"):
+        field = flag[0][2:].replace("-", "_")
+        solver = {field: float(flag[1])} if flag[0] != "--iterations" else {}
         divide = {"iterations": int(flag[1]), "subscenes": 2} if flag[0] == "--iterations" else {}
         with pytest.raises(grpc.RpcError) as e:
             submit(cluster.address, path.parent, path.name, solver, divide)
