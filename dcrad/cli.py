@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import shutil
 import signal
@@ -191,6 +192,26 @@ def _note_choice(out: Path, choice: str | None) -> None:
     report = json.loads(path.read_text())
     report["choices"] = [choice] + list(report.get("choices", []))
     path.write_text(json.dumps(report, indent=1))
+
+
+def ranged(kind, low: float, high: float | None = None, above: bool = False):
+    """An argparse type: ``kind`` (int or float) of ``text``, finite and >= ``low`` (> with ``above``)
+    and <= ``high``; else the flag's one-line error naming the range."""
+    bound = f"{'>' if above else '>='} {low:g}" + (f" and <= {high:g}" if high is not None else "")
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not {'an integer' if kind is int else 'a number'}") from None
+        if not (math.isfinite(v) and (v > low if above else v >= low) and (high is None or v <= high)):
+            raise argparse.ArgumentTypeError(f"{text}: must be {bound}")
+        return v
+
+    return parse
+
+
+PORT = ranged(int, 0, 65535)
 
 
 def _k_list(text: str) -> tuple[int, ...]:
@@ -373,28 +394,29 @@ def build_parser() -> argparse.ArgumentParser:
     env = os.environ
     p = sub.add_parser("coordinator", help="run the gRPC coordinator service")
     p.add_argument("--host", default=env.get("DCRAD_HOST", "127.0.0.1"), help="address to bind (default 127.0.0.1)")
-    p.add_argument("--port", type=int, default=int(env.get("DCRAD_PORT", "50051")), help="gRPC port (0: any free)")
+    p.add_argument("--port", type=PORT, default=env.get("DCRAD_PORT", "50051"), help="gRPC port (0: any free)")
     p.add_argument("--data", default=env.get("DCRAD_DATA", "dcrad-coordinator"), help="folder for uploads and results")
-    p.add_argument("--max-upload", type=int, default=int(env.get("DCRAD_MAX_UPLOAD", str(512 * 1024 * 1024))),
+    p.add_argument("--max-upload", type=ranged(int, 1), default=env.get("DCRAD_MAX_UPLOAD", str(512 * 1024 * 1024)),
                    help="largest scene upload in bytes, all files of a job together (default 536870912 = "
                         "512 MiB, or $DCRAD_MAX_UPLOAD); uploads are streamed to disk as they arrive")
-    p.add_argument("--worker-wait", type=float, default=60.0, help="seconds a job waits for a first worker")
-    p.add_argument("--web-port", type=int, default=int(env.get("DCRAD_WEB_PORT", "8080")),
+    p.add_argument("--worker-wait", type=ranged(float, 0, above=True), default=60.0,
+                   help="seconds a job waits for a first worker")
+    p.add_argument("--web-port", type=ranged(int, -1, 65535), default=env.get("DCRAD_WEB_PORT", "8080"),
                    help="port of the web status pages (default 8080; 0: any free port; -1: off)")
     p.add_argument("--web-host", default=env.get("DCRAD_WEB_HOST"),
                    help="address the status pages bind (default: the same as --host)")
-    p.add_argument("--preview-interval", type=float, default=2.0,
+    p.add_argument("--preview-interval", type=ranged(float, 0), default=2.0,
                    help="seconds between preview images of a running job (at most one per barrier)")
     p.set_defaults(func=cmd_coordinator)
 
     p = sub.add_parser("worker", help="run a gRPC worker that registers with a coordinator")
     p.add_argument("--host", default=env.get("DCRAD_HOST", "127.0.0.1"), help="address to bind")
-    p.add_argument("--port", type=int, default=int(env.get("DCRAD_WORKER_PORT", "0")), help="gRPC port (0: any free)")
+    p.add_argument("--port", type=PORT, default=env.get("DCRAD_WORKER_PORT", "0"), help="gRPC port (0: any free)")
     p.add_argument("--coordinator", default=env.get("DCRAD_COORDINATOR", "127.0.0.1:50051"),
                    help="coordinator address host:port")
     p.add_argument("--advertise", default=env.get("DCRAD_ADVERTISE"),
                    help="address the coordinator should use for this worker (default host:port)")
-    p.add_argument("--capacity", type=int, default=4, help="subscenes this worker takes at once")
+    p.add_argument("--capacity", type=ranged(int, 1), default=4, help="subscenes this worker takes at once")
     p.add_argument("--name", default="", help="a readable name")
     p.set_defaults(func=cmd_worker)
 

@@ -11,6 +11,7 @@ on the same address shows its new name.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import urllib.error
@@ -175,6 +176,31 @@ def test_absurd_flags_are_one_line_on_both_paths(tmp_path, cluster, flag):
     else:
         return
     assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and ABSURD[flag] in e.value.details()
+
+
+@pytest.mark.parametrize("args", [
+    ("coordinator", "--port", "99999"),  # it listened on another port, silently
+    ("worker", "--port", "-2"),  # it listened on 65534
+    ("coordinator", "--max-upload", "-1"),
+    ("coordinator", "--worker-wait", "-5"),
+    ("coordinator", "--web-port", "70000"),
+    ("coordinator", "--preview-interval", "-1"),
+    ("worker", "--capacity", "0"),  # a worker that could take nothing registered
+])
+def test_absurd_service_flags_are_one_line(tmp_path, args):
+    r = dcrad(*args, cwd=tmp_path)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and f"argument {args[1]}: {args[2]}: must be" in lines[-1], r.stderr
+    assert "Traceback" not in r.stderr and "listening" not in r.stdout
+
+
+def test_a_bad_port_in_the_environment_is_one_line(tmp_path):
+    """The defaults from $DCRAD_PORT and friends went through int() while the parser was built:
+    a traceback for every command."""
+    r = subprocess.run([sys.executable, "-m", "dcrad.cli", "coordinator"], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=60, env={**os.environ, "DCRAD_PORT": "abc"})
+    assert r.returncode == 2 and "argument --port: 'abc' is not an integer" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
 
 
 def test_scenes_takes_the_parameters_solve_takes(tmp_path):
