@@ -23,13 +23,14 @@ import math
 
 import numpy as np
 
+from .errors import ConfigError
 from .rays import MISS, Tracer
 from .render import tonemap
 from .sampling import cosine_hemisphere, lattice, onb, triangle_points
 
 __all__ = [
     "EFFICACY", "Y_WEIGHTS", "RHO_GATHER", "GATHER_RAYS", "irradiance", "to_lux", "luminance_cd",
-    "surface_groups", "surface_stats", "workplane", "stats", "false_colour", "legend_scale",
+    "surface_groups", "surface_stats", "workplane", "check_workplane", "stats", "false_colour", "legend_scale",
 ]
 
 #: lm/W: luminous efficacy of white light (Radiance's convention)
@@ -159,6 +160,15 @@ def surface_stats(patches, lux: np.ndarray) -> list[dict]:
     return [{"name": names[g], "area_m2": float(area[g]),
              **_stats_of(lux_a[g], area[g], lux_sum[g] / count[g], lo[g], hi[g]),
              "L_avg_cd_m2": float(lum_a[g] / area[g]) if area[g] > 0 else 0.0} for g in used]
+
+
+def check_workplane(height: float, patches) -> None:
+    """ConfigError unless a work plane ``height`` m above the floor is inside the scene's box
+    (0: none): above it every grid point looks at the outside, and the grid is empty."""
+    top = float(patches.bounds[1][1] - patches.bounds[0][1]) if len(patches) else 0.0
+    if not (math.isfinite(height) and 0.0 <= height < max(top, 1e-300)) and height != 0.0:
+        raise ConfigError(f"--workplane {height:g} m: must be at least 0 and below the scene's height above its "
+                          f"floor, {top:.4g} m (0: no work plane)")
 
 
 def workplane(patches, height: float, spacing: float | None = None, tracer: Tracer | None = None,

@@ -514,6 +514,7 @@ def solve_to(
     t0 = time.perf_counter()
     phases: dict = {}
     scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases, loaded=loaded)
+    photometry.check_workplane(workplane, patches)
     t_load = time.perf_counter() - t0 + (loaded[1] if loaded is not None else 0.0)
 
     t0 = time.perf_counter()

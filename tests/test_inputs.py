@@ -147,6 +147,8 @@ ABSURD = {  # flag -> what the one line must name
     ("--batch-rays", "1000000000000"): "batch_rays=1000000000000",  # accepted: a batch is held in memory whole
     ("--accuracy", "1e-07"): "--accuracy 1e-07",  # ran on with no end in sight (bias 40% after 120 s)
     ("--rays-per-power", "1e+30"): "rays_per_power=1e+30",  # the same
+    ("--workplane", "nan"): "--workplane nan",  # a traceback from the report's JSON
+    ("--workplane", "1e+30"): "--workplane 1e+30",  # an empty grid above the scene
 }
 
 
@@ -162,7 +164,7 @@ def test_absurd_flags_are_one_line_on_both_paths(tmp_path, cluster, flag):
     assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("dcrad: error: "), r.stderr
     assert ABSURD[flag] in lines[0], lines[0]
     assert not (tmp_path / "o" / "radiosity.npz").exists()
-    if flag[0] in ("--patch-size", "--iterations", "--accuracy", "--rays-per-power"):
+    if flag[0] in ("--patch-size", "--iterations", "--accuracy", "--rays-per-power", "--workplane"):
         field = flag[0][2:].replace("-", "_")
         solver = {field: float(flag[1])} if flag[0] != "--iterations" else {}
         divide = {"iterations": int(flag[1]), "subscenes": 2} if flag[0] == "--iterations" else {}
