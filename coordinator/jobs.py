@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from dcrad import export, photometry, render
+from dcrad import export, render
 from dcrad.accuracy import resolve
 from dcrad.config import SolverConfig
 from dcrad.divide import (
@@ -521,9 +521,8 @@ class JobManager:
             phases: dict[str, float] = {}
             scene, patches, size = prepare(scene_dir / spec.scene, spec.solver.patch_size or None,
                                            spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
-                                           timings=phases)
+                                           timings=phases, workplane=spec.solver.workplane)
             resolve(solver_config(spec.solver), len(patches))  # an accuracy beyond reach is refused now
-            photometry.check_workplane(spec.solver.workplane, patches)
             check_subscenes(self._divide(spec, 1).subscenes, len(patches))
             # kept for the job's run (meshing a scene twice cost 0.4 s at 201k patches)
             job.prepared = (scene, patches, size, {"load_and_mesh_s": time.perf_counter() - t0, **phases})

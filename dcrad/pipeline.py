@@ -82,13 +82,15 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
 
 
 def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str | None = None,
-            two_sided: bool = False, timings: dict | None = None, loaded: tuple | None = None):
+            two_sided: bool = False, timings: dict | None = None, loaded: tuple | None = None,
+            workplane: float = 0.0):
     """Load, validate and mesh a scene: returns (scene, patches, patch_size used).
 
     ``up`` (None: detect) and ``two_sided``: see scene.load_scene.  ``timings`` (a dict)
     receives ``load_s`` (file to validated triangles) and ``mesh_s`` (triangles to patches).
     ``loaded``: (scene, seconds) of ``path`` loaded with these settings already (`dcrad solve`'s
-    choice of workers loads it first): not loaded twice.
+    choice of workers loads it first): not loaded twice.  ``workplane``: checked against the
+    meshed scene (``photometry.check_workplane``).
     """
     t0 = time.perf_counter()
     if loaded is not None:
@@ -101,6 +103,7 @@ def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str |
     size = patch_size if patch_size else default_patch_size(scene)
     check_patch_count(estimate_patches(scene.vertices[scene.faces[scene.valid]], size), size)
     patches = scene.patches(size)
+    photometry.check_workplane(workplane, patches)
     if timings is not None:
         timings.update(load_s=t1 - t0, mesh_s=time.perf_counter() - t1)
     return scene, patches, size
@@ -513,8 +516,8 @@ def solve_to(
     out = Path(out)
     t0 = time.perf_counter()
     phases: dict = {}
-    scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases, loaded=loaded)
-    photometry.check_workplane(workplane, patches)
+    scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases, loaded=loaded,
+                                   workplane=workplane)
     t_load = time.perf_counter() - t0 + (loaded[1] if loaded is not None else 0.0)
 
     t0 = time.perf_counter()

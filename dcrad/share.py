@@ -58,7 +58,7 @@ from .patches import Patches
 from .rays import Tracer
 from .report import RunBooks
 from .shooters import spatial_order
-from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, top_up, within_budget
+from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, budget_cut_note, top_up, within_budget
 
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
@@ -417,9 +417,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     receivers = int(patches.rho.any(axis=1).sum())
     more = within_budget(first + first % 2, cfg.max_rays, shot_rays, receivers)
     budget_cut = more < first
-    cut = [f"ray budget: the final gather cut to {more} rays per receiving patch (planned {first}), what "
-           f"--max-rays {cfg.max_rays} leaves after {shot_rays} rays"
-           + ("; not gathered: B is the shot solution" if more < 2 else "")] if budget_cut and not stopped else []
+    cut = [budget_cut_note(more, first, cfg.max_rays, shot_rays)] if budget_cut and not stopped else []
     if more >= 2 and stopped == "" and receivers:
         fg = FinalGather(patches, None, shot.diff, shot.direct, shot.direct_a, cfg.batch_rays)
         pos = [np.searchsorted(fg.rec, rows) for rows in parts]

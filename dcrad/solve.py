@@ -580,9 +580,7 @@ class Solver:
         cut = within_budget(first, cfg.max_rays, self.stats.rays, receivers)
         if cut < first:
             self.budget_cut = True
-            self.choices.append(f"ray budget: the final gather cut to {cut} rays per receiving patch (planned "
-                                f"{first}), what --max-rays {cfg.max_rays} leaves after {self.stats.rays} rays"
-                                + ("; not gathered: B is the shot solution" if cut < 2 else ""))
+            self.choices.append(budget_cut_note(cut, first, cfg.max_rays, self.stats.rays))
         self.final(cut)
         for _ in range(FINAL_ROUNDS - 1):
             if not by_accuracy(cfg) or self._final is None:
@@ -734,6 +732,13 @@ class Solver:
         """Warnings about the run: flipped normals (back-face share of shot power), escaped light."""
         return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
                                                                                                   self.patches)
+
+
+def budget_cut_note(cut: int, planned: int, max_rays: int, used: int) -> str:
+    """The report's line on a final gather cut by ``within_budget`` (in process and shared runs)."""
+    return (f"ray budget: the final gather cut to {cut} rays per receiving patch (planned {planned}), what "
+            f"--max-rays {max_rays} leaves after {used} rays" + ("; not gathered: B is the shot solution"
+                                                                if cut < 2 else ""))
 
 
 def within_budget(rays: int, max_rays: int, used: int, receivers: int) -> int:
