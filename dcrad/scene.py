@@ -335,14 +335,141 @@ def gltf_header(path: str) -> dict:
             length, kind = struct.unpack_from("<I4s", blob, 12)
             if magic != b"glTF" or version != 2 or kind != b"JSON":
                 raise ValueError("not a glTF 2.0 binary (bad header or first chunk is not JSON)")
+            glb_bin = _glb_bin_length(blob, 20 + length)
             blob = blob[20 : 20 + length]
+        else:
+            glb_bin = None
         header = json.loads(blob.decode("utf-8"))
         if not isinstance(header, dict):
             raise ValueError("top level is not a JSON object")
     except (ValueError, struct.error, UnicodeDecodeError) as exc:
         raise SceneFormatError(f"cannot parse glTF {path}: {exc}") from None
     gltf_files(header, path)
+    gltf_structure(header, path, glb_bin)
     return header
+
+
+def _glb_bin_length(blob: bytes, at: int) -> int | None:
+    """Length of a GLB's binary chunk starting at ``at`` (None without one)."""
+    if len(blob) < at + 8:
+        return None
+    length, kind = struct.unpack_from("<I4s", blob, at)
+    if kind != b"BIN\0":
+        return None
+    return min(length, len(blob) - at - 8)  # a truncated file holds less than its chunk claims
+
+
+#: bytes of a glTF accessor's component types, and components of its element types
+_GLTF_COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+_GLTF_TYPE_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+def gltf_structure(header: dict, path: str, glb_bin: int | None = None) -> None:
+    """Every index the scenes, nodes and meshes use names an item the file has, every accessor
+    fits in its buffer view, every view in its buffer and every buffer in its data: else a
+    SceneFormatError naming the first item that does not (trimesh fails on these with its
+    own internal errors).  ``glb_bin``: the length of a GLB's binary chunk."""
+    where = f"cannot load glTF {path}"
+
+    def items(kind: str) -> list:
+        got = header.get(kind, [])
+        if not isinstance(got, list):
+            raise SceneFormatError(f"{where}: '{kind}' is not a list")
+        for i, item in enumerate(got):
+            if not isinstance(item, dict):
+                raise SceneFormatError(f"{where}: item {i} of '{kind}' is not a JSON object")
+        return got
+
+    def ref(kind: str, value, what: str) -> dict:
+        have = items(kind)
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < len(have):
+            one = "mesh" if kind == "meshes" else kind[:-1]
+            raise SceneFormatError(f"{where}: {what} refers to {one} {value!r}, but the file has "
+                                   f"{len(have)} {one if len(have) == 1 else kind}")
+        return have[value]
+
+    def count(item: dict, key: str, what: str, default=None) -> int:
+        value = item.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise SceneFormatError(f"{where}: {what} has {key} {value!r}, not a whole number >= 0")
+        return value
+
+    def indices(item: dict, key: str, what: str) -> list:
+        got = item.get(key, [])
+        if not isinstance(got, list):
+            raise SceneFormatError(f"{where}: {what}'s {key} is not a list")
+        return got
+
+    if "scene" in header:
+        ref("scenes", header["scene"], "the default scene")
+    for i, sc in enumerate(items("scenes")):
+        for n in indices(sc, "nodes", f"scene {i}"):
+            ref("nodes", n, f"scene {i}")
+    for i, node in enumerate(items("nodes")):
+        for n in indices(node, "children", f"node {i}"):
+            ref("nodes", n, f"node {i}'s children")
+        if "mesh" in node:
+            ref("meshes", node["mesh"], f"node {i}")
+    for i, mesh in enumerate(items("meshes")):
+        for j, prim in enumerate(indices(mesh, "primitives", f"mesh {i}")):
+            what = f"mesh {i} primitive {j}"
+            if not isinstance(prim, dict):
+                raise SceneFormatError(f"{where}: {what} is not a JSON object")
+            attrs = prim.get("attributes")
+            if not isinstance(attrs, dict) or "POSITION" not in attrs:
+                raise SceneFormatError(f"{where}: {what} has no POSITION attribute")
+            for name, a in attrs.items():
+                ref("accessors", a, f"{what}'s {name}")
+            if "indices" in prim:
+                ref("accessors", prim["indices"], f"{what}'s indices")
+            if "material" in prim:
+                ref("materials", prim["material"], what)
+    sizes = []
+    for i, buf in enumerate(items("buffers")):
+        size = count(buf, "byteLength", f"buffer {i}")
+        uri = buf.get("uri")
+        if isinstance(uri, str) and uri.startswith("data:"):
+            try:
+                held = len(base64.b64decode(uri.split(",", 1)[1]))
+            except (ValueError, IndexError):
+                raise SceneFormatError(f"{where}: buffer {i}'s data: URI is not base64") from None
+        elif isinstance(uri, str):
+            full = os.path.join(os.path.dirname(os.path.abspath(path)), uri)
+            try:
+                held = os.path.getsize(full)
+            except OSError:
+                raise SceneFormatError(f"{where}: buffer {i}'s file '{uri}' cannot be read") from None
+        elif i == 0 and glb_bin is not None:
+            held = glb_bin
+        else:
+            raise SceneFormatError(f"{where}: buffer {i} has no data (no uri, and no GLB binary chunk)")
+        if held < size:
+            raise SceneFormatError(f"{where}: buffer {i} holds {held} bytes, less than its byteLength {size}")
+        sizes.append(size)
+    views = []
+    for i, view in enumerate(items("bufferViews")):
+        ref("buffers", view.get("buffer"), f"bufferView {i}")
+        start, length = count(view, "byteOffset", f"bufferView {i}", 0), count(view, "byteLength", f"bufferView {i}")
+        if start + length > sizes[view["buffer"]]:
+            raise SceneFormatError(f"{where}: bufferView {i} (bytes {start} to {start + length}) runs past the end "
+                                   f"of buffer {view['buffer']} ({sizes[view['buffer']]} bytes)")
+        views.append(length)
+    for i, acc in enumerate(items("accessors")):
+        what = f"accessor {i}"
+        comp = _GLTF_COMPONENT_BYTES.get(acc.get("componentType"))
+        parts = _GLTF_TYPE_COMPONENTS.get(acc.get("type"))
+        if comp is None or parts is None:
+            raise SceneFormatError(f"{where}: {what} has componentType {acc.get('componentType')!r} and type "
+                                   f"{acc.get('type')!r}, not a glTF 2.0 pair")
+        n = count(acc, "count", what)
+        if "bufferView" not in acc:
+            continue  # all zeros (or sparse): nothing to read
+        view = ref("bufferViews", acc["bufferView"], what)
+        stride = count(view, "byteStride", f"bufferView {acc['bufferView']}", 0) or comp * parts
+        end = count(acc, "byteOffset", what, 0) + (stride * (n - 1) + comp * parts if n else 0)
+        if end > views[acc["bufferView"]]:
+            raise SceneFormatError(f"{where}: {what} ({n} x {acc['type']}) needs {end} bytes of bufferView "
+                                   f"{acc['bufferView']}, which has {views[acc['bufferView']]}")
 
 
 def gltf_files(header: dict, path: str) -> list[str]:

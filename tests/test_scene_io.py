@@ -423,6 +423,53 @@ def test_gltf_bad_files(tmp_path):
         load_scene(tmp_path / "e.gltf")
 
 
+BROKEN_GLTF = {
+    # what is broken: (change to hand_gltf's dict, words the error must hold)
+    "attribute accessor": (lambda g: g["meshes"][0]["primitives"][0]["attributes"].update(POSITION=5),
+                           "mesh 0 primitive 0's POSITION refers to accessor 5, but the file has 2 accessors"),
+    "indices accessor": (lambda g: g["meshes"][0]["primitives"][0].update(indices=-1),
+                         "primitive 0's indices refers to accessor -1"),
+    "no POSITION": (lambda g: g["meshes"][0]["primitives"][0].update(attributes={}),
+                    "mesh 0 primitive 0 has no POSITION attribute"),
+    "node mesh": (lambda g: g["nodes"][1].update(mesh=3), "node 1 refers to mesh 3, but the file has 1 mesh"),
+    "child node": (lambda g: g["nodes"][0].update(children=[9]), "node 0's children refers to node 9"),
+    "view past buffer": (lambda g: g["bufferViews"][1].update(byteLength=40),
+                         "bufferView 1 (bytes 48 to 88) runs past the end of buffer 0 (60 bytes)"),
+    "accessor past view": (lambda g: g["accessors"][0].update(count=40),
+                           "accessor 0 (40 x VEC3) needs 480 bytes of bufferView 0, which has 48"),
+    "component type": (lambda g: g["accessors"][1].update(componentType=7),
+                       "accessor 1 has componentType 7"),
+    "buffer short of its length": (lambda g: g["buffers"][0].update(byteLength=100),
+                                   "buffer 0 holds 60 bytes, less than its byteLength 100"),
+    "buffer file missing": (lambda g: g["buffers"][0].update(uri="gone.bin"), "buffer 0's file 'gone.bin'"),
+    "material": (lambda g: g["meshes"][0]["primitives"][0].update(material=4), "refers to material 4"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BROKEN_GLTF))
+def test_gltf_broken_structure_names_the_item(tmp_path, case):
+    """A glTF whose indices or byte ranges do not hold is refused naming the item: trimesh's own
+    errors on these (an UnboundLocalError for a missing accessor) name nothing."""
+    g = hand_gltf([{"name": "m"}])
+    change, words = BROKEN_GLTF[case]
+    change(g)
+    (tmp_path / "b.gltf").write_text(json.dumps(g))
+    with pytest.raises(SceneFormatError) as exc:
+        load_scene(tmp_path / "b.gltf")
+    assert words in str(exc.value) and "b.gltf" in str(exc.value)
+
+
+def test_truncated_glb_is_refused_naming_its_buffer(tmp_path):
+    import trimesh
+
+    whole = trimesh.creation.box().export(file_type="glb")
+    (tmp_path / "ok.glb").write_bytes(whole)
+    assert len(load_scene(tmp_path / "ok.glb")) == 12
+    (tmp_path / "cut.glb").write_bytes(whole[:-100])
+    with pytest.raises(SceneFormatError, match=r"cut\.glb: buffer 0 holds \d+ bytes, less than its byteLength"):
+        load_scene(tmp_path / "cut.glb")
+
+
 # -- textures (issue 15) ----------------------------------------------------------------------
 def _png(path, rgb_bytes):
     """Write a tiny RGB PNG (uint8 sRGB values, shape (h, w, 3)) with OpenImageIO."""
