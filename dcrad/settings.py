@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from google.protobuf.message import Message
@@ -40,6 +41,21 @@ def flag_name(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+def whole(text: str) -> int:
+    """argparse type of a count flag: a whole number, written ``2000000``, ``2_000_000`` or ``2e6``."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        x = float(text)
+    except ValueError:
+        x = math.nan
+    if not (math.isfinite(x) and x == int(x)):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number")
+    return int(x)
+
+
 def _flagged(cls) -> list[dataclasses.Field]:
     return [f for f in dataclasses.fields(cls) if f.metadata.get("flag", True)]
 
@@ -58,7 +74,8 @@ def add_flags(parser: argparse.ArgumentParser, cls, skip: tuple[str, ...] = (),
             parser.add_argument(flag_name(f.name), dest=f.name, action=argparse.BooleanOptionalAction,
                                 default=default, help=help)
         else:
-            parser.add_argument(flag_name(f.name), dest=f.name, type=type(default), default=default, help=help)
+            kind = whole if isinstance(default, int) else type(default)
+            parser.add_argument(flag_name(f.name), dest=f.name, type=kind, default=default, help=help)
 
 
 def add_scene_flags(parser: argparse.ArgumentParser) -> None:

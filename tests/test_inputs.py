@@ -307,3 +307,19 @@ def test_huge_coordinates_are_named_on_every_path(tmp_path, cluster):
         with pytest.raises(grpc.RpcError) as e:
             submit(cluster.address, scene.parent, scene.name, {"scale": float(flags[1]) if flags else 1.0}, {})
         assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "from the origin" in e.value.details()
+
+
+def test_count_flags_take_whole_numbers_as_people_write_them(capsys):
+    """``--max-rays 2e6`` is two million (argparse's int refused it: "invalid int value"); a count
+    that is not whole is one line naming it."""
+    from dcrad.cli import build_parser
+
+    args = build_parser().parse_args(["solve", "office", "--max-rays", "2e6", "--batch-rays", "65_536",
+                                      "--min-rays", "8"])
+    assert (args.max_rays, args.batch_rays, args.min_rays) == (2_000_000, 65_536, 8)
+    assert all(type(v) is int for v in (args.max_rays, args.batch_rays, args.min_rays))
+    for bad in ("1.5", "abc", "nan", "inf"):
+        with pytest.raises(SystemExit) as exc:
+            build_parser().parse_args(["solve", "office", "--max-rays", bad])
+        assert exc.value.code == 2
+        assert f"argument --max-rays: '{bad}' is not a whole number" in capsys.readouterr().err
