@@ -11,9 +11,11 @@ per ray), and the CPU seconds of the solve (the machine is shared: wall seconds 
 With the direct light gathered from exact form factors, an accuracy run shoots the
 reflected light coarsely and gathers it again at the end (final.py, accuracy.FinalPlan).
 ``--fixed 4e6`` runs converged solves at fixed densities instead of targets (no final gather).
+``--budgets 1e6,2e6`` runs the first accuracy target under each ray budget (``--max-rays``).
 
     .venv/bin/python bench/bench_accuracy.py --scenes cornell,office --accuracies 0.1,0.05,0.03,0.02
     .venv/bin/python bench/bench_accuracy.py --scenes cornell --fixed 4e6 --cache /tmp/refs
+    .venv/bin/python bench/bench_accuracy.py --scenes office --gather on --budgets 1e6,2e6,3e6 --ref-accuracy 0.004
 """
 
 from __future__ import annotations
@@ -80,12 +82,16 @@ def main() -> None:
     ap.add_argument("--gather", default="on,off", help="direct-light gather: on, off or on,off")
     ap.add_argument("--fixed", default="", help="instead of accuracy targets: converged runs (tol 1e-3) at these "
                     "rays per power, e.g. 4e6 (error per ray at a fixed density)")
+    ap.add_argument("--budgets", default="", help="instead of targets: runs at the first accuracy target within "
+                    "these ray budgets (--max-rays), e.g. 1e6,2e6")
     ap.add_argument("--shadow-rays", type=int, default=0, help="shadow rays per patch (0: automatic)")
     args = ap.parse_args()
     accuracies = [float(a) for a in args.accuracies.split(",")]
     fixed = [float(a) for a in args.fixed.split(",") if a.strip()]
+    budgets = [int(float(b)) for b in args.budgets.split(",") if b.strip()]
     gathers = [g.strip() == "on" for g in args.gather.split(",")]
-    print(f"| scene | patches | gather | {'rays per power' if args.fixed else 'target'} | rays (M) | s | stopped by | "
+    what = "rays per power" if args.fixed else "budget" if budgets else "target"
+    print(f"| scene | patches | gather | {what} | rays (M) | s | stopped by | "
           "estimate refl | measured refl | measured norm | est/meas | refl x sqrt(Mrays) | cpu s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
@@ -99,10 +105,12 @@ def main() -> None:
             area = patches.area
             rms_b, rms_r = rms(ref, area), rms(ref - patches.emission, area)
             for gather in gathers:
-                for acc in fixed or accuracies:
+                for acc in fixed or budgets or accuracies:
                     patches.reset()
                     cfg = (SolverConfig(seed=args.seed, tol=1e-3, rays_per_power=acc, direct=gather,
                                         shadow_rays=args.shadow_rays) if fixed else
+                           SolverConfig(seed=args.seed, accuracy=accuracies[0], direct=gather,
+                                        shadow_rays=args.shadow_rays, max_rays=int(acc)) if budgets else
                            SolverConfig(seed=args.seed, accuracy=acc, direct=gather, shadow_rays=args.shadow_rays))
                     t, cpu = time.perf_counter(), time.process_time()
                     s = solve_to_accuracy(patches, cfg, tracer)

@@ -228,6 +228,8 @@ def run_replica(patches: Patches, config: SolverConfig, tracer: Tracer, direct: 
     solver.replicas, solver.shared_noise = k, shared_noise(patches, direct)
     solver.shoot_share = 1.0 / max(k, 1)
     solver.defer_final = True
+    job_plan = final_plan(resolve(config, len(patches)), len(patches))
+    solver.planned_final_rays = job_plan.final_rays if job_plan is not None else 0
     solver.run(should_stop=should_stop)
     st, est = solver.stats, solver.estimate()
     n = len(patches)
@@ -407,7 +409,8 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     # the final gather of the average, split by receivers, topped up as Solver.finish does
     # the job's plan (the replicas' is at 1/k of the density): the gather is not split by rays
     plan = final_plan(cfg, len(patches))
-    first = plan.final_rays if plan is not None and any(r.final_rays for r in replicas) else 0
+    # the replicas' plan: a budget coarsens it alike in each (Solver.fit_budget)
+    first = min(r.final_rays for r in replicas) if plan is not None and all(r.final_rays for r in replicas) else 0
     rounds: list[int] = []
     gather_rays = 0
     stopped = _stopped_by(replicas)

@@ -200,6 +200,12 @@ class Solver:
         #: stop where the final gather would start (``stopped_by: final_gather``): a shared run's
         #: replicas leave it to the shared run, which gathers their average split by receivers
         self.defer_final = False
+        #: rays kept for the final gather under --max-rays (``fit_budget``): the shooting stops short of them
+        self.gather_reserve = 0
+        #: a shared run's replica: the job's final gather rays per receiver (its own plan is at 1/k of
+        #: the density; the replicas plan, and a budget coarsens, the job's gather: share.run_replica)
+        self.planned_final_rays = 0
+        self._fitted = False  #: ``fit_budget`` has run
         self._t0 = time.perf_counter()
 
     # == one Embree call ===========================================================
@@ -424,6 +430,12 @@ class Solver:
         plan = final_plan(cfg, len(p)) if lights is not None else None
         if plan is not None:
             shadow = plan.shadow_rays
+            if cfg.max_rays:
+                # the whole plan (direct, shooting, gather) coarsened alike to fit the budget (the
+                # shooting and gather are fitted again once the direct light is in: ``fit_budget``)
+                f = self.budget_scale(cfg.max_rays - self.stats.rays,
+                                      shadow * n_receivers + self.plan_rays(plan, n_receivers))
+                shadow = max(int(shadow * f), MIN_BUDGET_SHADOW) if f < 1.0 else shadow  # f = 0: none fit
         return emitters, amounts, power, shadow, lights, plan
 
     def direct_pilot(self, rows: np.ndarray, rng: np.random.Generator) -> AnalyticGather | None:
@@ -469,12 +481,13 @@ class Solver:
         # a pilot on a random share of the receivers decides whether gathering beats shooting
         receivers = np.flatnonzero(p.rho.any(axis=1))
         budget = cfg.max_rays - self.stats.rays if cfg.max_rays else 0
-        if preset is None and cfg.max_rays and shadow * len(receivers) > budget:
-            # the gather's shadow rays alone would overrun the ray budget (the office at --max-rays
-            # 1e5: 611k rays, all of them the gather's): the emitters are shot, within it
+        if preset is None and cfg.max_rays and shadow * len(receivers) > DIRECT_BUDGET_SHARE * budget:
+            # the gather's shadow rays would take most of the ray budget (the office at --max-rays
+            # 1e5: 611k rays, all of them the gather's; at 16 shadow rays, its least under a budget,
+            # still 304k): the emitters are shot, within it (``fit_budget`` sets their density)
             self.choices.append(f"direct light shot, not gathered: {shadow} shadow rays for each of "
-                                f"{len(receivers)} receiving patches are more than the ray budget leaves "
-                                f"({max(budget, 0)} of --max-rays {cfg.max_rays})")
+                                f"{len(receivers)} receiving patches are more than {DIRECT_BUDGET_SHARE:.0%} of "
+                                f"the ray budget ({max(budget, 0)} of --max-rays {cfg.max_rays})")
             return 0
         size = min(len(receivers), max(64, int(PILOT_SHARE * len(receivers))))
         pilot = np.sort(self.rng.choice(receivers, size, replace=False))
@@ -533,7 +546,7 @@ class Solver:
                             f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
                             f"the emitters book how much of it lands, escapes or meets back faces")
         if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
-            self.final_rays = plan.final_rays
+            self.final_rays = self.planned_final_rays or plan.final_rays
             self.power_per_ray = float(self.ledger.emitted.sum()) / (plan.shoot_rays_per_power * self.shoot_share)
             # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
             self.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * self.shoot_share))))
@@ -542,6 +555,72 @@ class Solver:
                                 f"(at least {plan.min_rays} rays a shot), then gathered again with "
                                 f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
         return self.counted(len(emitters), shadow_counted + int(counts.sum()))
+
+    def shoot_prediction(self, power_per_ray: float | None = None) -> float:
+        """Rays the shooting will take from here at ``power_per_ray`` (default the run's): the unshot
+        power and its reflections, P / (1 - rho) for the scene's mean reflectance rho, a ray per
+        power_per_ray (the shots' floors come on top: ``BUDGET_FIT`` leaves them room)."""
+        p = self.patches
+        unshot = np.abs(self.ledger.unshot)
+        rho = float(np.dot(p.mean_rho, unshot) / max(float(unshot.sum()), 1e-300))
+        ppr = self.power_per_ray if power_per_ray is None else power_per_ray
+        return float(unshot.sum()) / (1.0 - min(rho, 0.95)) / max(ppr, 1e-300)
+
+    def plan_rays(self, plan, receivers: int) -> float:
+        """Rays a final plan's shooting and gather would take from here (before the direct gather:
+        the reflected share of the emitted power is what will be shot)."""
+        p = self.patches
+        emitted = np.abs(self.ledger.emitted)
+        rho = float(np.dot(p.mean_rho, emitted) / max(float(emitted.sum()), 1e-300))
+        ppr = float(emitted.sum()) / (plan.shoot_rays_per_power * self.shoot_share)
+        shoot = float(emitted.sum()) * rho / (1.0 - min(rho, 0.95)) / max(ppr, 1e-300)
+        return shoot + plan.final_rays * receivers * (1.0 + BRIGHT_SHARE) * self.shoot_share
+
+    def budget_left(self) -> int:
+        """Rays --max-rays leaves this run (a shared run's replica: its 1/k of what the shared
+        direct gather left)."""
+        cfg = self.config
+        spent = self.stats.rays + (self.preset_direct.rays * self.shoot_share if self.preset_direct is not None
+                                   else 0)
+        return int(cfg.max_rays - spent)
+
+    @staticmethod
+    def budget_scale(left: float, need: float) -> float:
+        """The share of the planned density that fits ``need`` rays in BUDGET_FIT of ``left`` (1: it fits)."""
+        if need <= BUDGET_FIT * left:
+            return 1.0
+        return max(BUDGET_FIT * left, 0.0) / max(need, 1e-300)  # 0: nothing left (the run stops by the budget)
+
+    def fit_budget(self) -> None:
+        """Under --max-rays, in accuracy mode, as the shooting starts: when the shooting to its end and
+        the final gather (if planned) would not fit in what the budget leaves, coarsen both alike
+        (fewer rays a unit of power, fewer gather rays a receiver), so the light is all shot and
+        gathered within the budget.  Without it a small budget stopped the shooting with most of the
+        light unshot: the office 3x3 at 1e6 rays read 41% off (bench/RESULTS.md).  The gather's
+        rays are then kept for it (``gather_reserve``): the shooting stops short of them."""
+        self._fitted = True
+        cfg = self.config
+        if not cfg.max_rays or not by_accuracy(cfg):
+            return
+        receivers = int(self.patches.rho.any(axis=1).sum())
+        per_ray = receivers * (1.0 + BRIGHT_SHARE) * self.shoot_share  # this run's share of a gather ray
+        pending = self.final_pending()
+        shoot, gather = self.shoot_prediction(), (self.final_rays * per_ray if pending else 0.0)
+        left = self.budget_left()
+        f = self.budget_scale(left, shoot + gather)
+        if 0.0 < f < 1.0:
+            self.power_per_ray /= f
+            if pending:
+                self.final_rays = max(2 * int(self.final_rays * f / 2), 2)
+            share = f" (this replica's 1/{self.replicas} of them)" if self.replicas > 1 else ""
+            takes = f"{shoot:.3g} shooting" + (f", {gather:.3g} in the final gather" if pending else "")
+            gives = (f"shooting at {float(self.ledger.emitted.sum()) / self.power_per_ray:.3g} rays per emitted "
+                     f"power" + (f", {self.final_rays} gather rays per receiving patch" if pending else ""))
+            self.choices.append(f"ray budget: --max-rays {cfg.max_rays} leaves {left} rays{share}, and the plan "
+                                f"would take about {shoot + gather:.3g} ({takes}): its density is coarsened to "
+                                f"{f:.2g}x ({gives}) to fit")
+        if pending:
+            self.gather_reserve = int(math.ceil(self.final_rays * per_ray))
 
     def final_pending(self) -> bool:
         """True while a final gather is planned and has not run."""
@@ -662,6 +741,8 @@ class Solver:
                 return "noise_floor"
         if cfg.time_limit and self.elapsed() >= cfg.time_limit:
             return "time_limit"
+        if cfg.max_rays and self.final_pending() and self.stats.rays + self.gather_reserve >= cfg.max_rays:
+            return "final_gather"  # what is left of the budget is the gather's (``fit_budget``)
         if cfg.max_rays and self.stats.rays >= cfg.max_rays:
             return "ray_budget"
         return ""
@@ -682,6 +763,8 @@ class Solver:
             self.snapshot()
             if on_progress is not None:
                 on_progress(self)
+        if not self._fitted:
+            self.fit_budget()
         while True:
             reason = self.stop_reason()
             if not reason and should_stop is not None and should_stop():
@@ -732,6 +815,17 @@ class Solver:
         """Warnings about the run: flipped normals (back-face share of shot power), escaped light."""
         return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
                                                                                                   self.patches)
+
+
+#: a run under --max-rays plans its shooting and gather to this share of what the budget leaves
+#: (``Solver.fit_budget``): the rest is for the shots' ray floors and the prediction's error
+BUDGET_FIT = 0.85
+#: fewest shadow rays per receiver of a direct gather coarsened to fit --max-rays: below about 16
+#: the exact gather's own floor (its pilot, a ray a half per receiver-light pair) dominates (the
+#: office: 271k rays at 4, 276k at 8, 304k at 16, 611k at 32; Cornell 97k, 199k, 405k, 816k)
+MIN_BUDGET_SHADOW = 16
+#: the direct gather takes at most this share of a --max-rays budget; else the emitters are shot
+DIRECT_BUDGET_SHARE = 0.5
 
 
 def budget_cut_note(cut: int, planned: int, max_rays: int, used: int) -> str:

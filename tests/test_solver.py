@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import re
 
 import numpy as np
 import pytest
@@ -289,9 +288,10 @@ def test_tracer_from_shared_vertices_hits_as_from_triangles(backend):
 @pytest.mark.parametrize("budget", [100_000, 1_000_000])
 def test_a_ray_budget_below_the_direct_gather_is_kept(tmp_path, budget):
     """The office (19,884 patches) at 2% gathers its direct light with 32 shadow rays a receiving
-    patch, 611k rays before the first shot: under a smaller ``max_rays`` the emitters are shot
-    instead, the report says why, and the run stops within one shot of the budget (it took
-    611,483 rays for a budget of 100,000).  A budget the gather fits keeps the gather."""
+    patch, 611k rays before the first shot.  Under ``max_rays`` the gather takes at most half the
+    budget (at 16 shadow rays, its least under a budget, 304k): at 1e5 the emitters are shot
+    instead and the report says why (it took 611,483 rays for a budget of 100,000); at 1e6 the
+    gather is kept.  Either way the run keeps to the budget and spends nearly all of it."""
     import scenes
     from dcrad.pipeline import prepare
 
@@ -300,38 +300,57 @@ def test_a_ray_budget_below_the_direct_gather_is_kept(tmp_path, budget):
     s = Solver(p, cfg)
     st = s.run()
     assert st.stopped_by == "ray_budget"
-    assert budget <= st.rays <= budget + cfg.max_rays_per_shot
+    assert 0.9 * budget <= st.rays <= budget + cfg.max_rays_per_shot
     shot = [c for c in s.choices if c.startswith("direct light shot, not gathered")]
     assert bool(shot) == (budget < 611_000) and s.ledger.closure() < 1e-10
 
 
-def test_the_final_gather_keeps_to_the_ray_budget(tmp_path):
-    """The office at 2% under ``max_rays`` 3e6: the shooting ends below the budget, then the
-    planned final gather (124 rays a receiving patch) would overrun it (it traced 4.67M rays).
-    The gather is cut to what the budget leaves, the run stops by the budget, the report says
-    so, and the shared run over two workers keeps to it the same way."""
+@pytest.fixture(scope="module")
+def office_reference(tmp_path_factory):
+    """The office's patches and a reference B from an independent run (seed 999, 1% of the
+    reflected light, 15.8M rays) with its own estimated noise (W/m^2)."""
     import scenes
     from dcrad.pipeline import prepare
+
+    _, p, _ = prepare(scenes.write_builtin("office", tmp_path_factory.mktemp("office")))
+    s = Solver(p, SolverConfig(accuracy=0.01, seed=999))
+    s.run()
+    return p, p.radiosity.copy(), s.estimate().rms
+
+
+def _measured_refl(p, ref, ref_noise) -> float:
+    """RMS error of p's B against the reference, its noise taken out, over RMS of the reflected light."""
+    area = p.area[:, None]
+    raw2 = float((area * (p.radiosity - ref) ** 2).sum() / (3 * p.area.sum()))
+    refl = math.sqrt(float((area * (ref - p.emission) ** 2).sum() / (3 * p.area.sum())))
+    return math.sqrt(max(raw2 - ref_noise ** 2, 0.0)) / refl
+
+
+@pytest.mark.parametrize("budget, most", [(1_000_000, 0.09), (1_500_000, 0.06)])
+def test_a_ray_budget_coarsens_the_whole_plan_to_fit(office_reference, budget, most):
+    """The office at 2% takes 4.67M rays (direct gather, shooting, a final gather of 124 rays a
+    receiving patch).  Under a smaller ``max_rays`` the plan is coarsened alike to fit
+    (``Solver.fit_budget``): the light is all shot and gathered within the budget.  Measured
+    against an independent reference: 1e6 rays read 6.0% off and 1.5e6 4.0% (before: the
+    shooting stopped at the budget with the light half shot, 41% and 21%; bench/RESULTS.md).
+    The estimate stays honest, and the shared run over two workers keeps to the budget alike."""
     from dcrad.share import LocalShares, run_shared
 
-    budget = 3_000_000
-    _, p, _ = prepare(scenes.write_builtin("office", tmp_path))
-    receivers = int(p.rho.any(axis=1).sum())
+    p, ref, ref_noise = office_reference
+    p.reset()
     cfg = SolverConfig(accuracy=0.02, max_rays=budget, seed=2)
     s = Solver(p, cfg)
     st = s.run()
-    line = next(c for c in s.choices if c.startswith("ray budget: the final gather cut"))
-    cut, planned, used = (int(x) for x in re.findall(r"cut to (\d+) rays .*planned (\d+)\).* after (\d+) rays",
-                                                     line)[0])
-    assert used + planned * receivers > budget >= st.rays > used  # it would have overrun; the cut gathered
-    assert 2 <= cut < planned and s._final is not None and 2 * s._final.per_half >= cut  # (a top-up may fit)
-    assert st.stopped_by == "ray_budget" and s.ledger.closure() < 1e-10
+    assert any(c.startswith("ray budget: --max-rays") and "coarsened" in c for c in s.choices)
+    assert 0.9 * budget <= st.rays <= budget and st.stopped_by == "ray_budget" and s._final is not None
+    est, meas = s.estimate(), _measured_refl(p, ref, ref_noise)
+    assert est.bias_refl < cfg.accuracy  # the light is all but shot (it was 74% of the reflected light at 1e6)
+    assert meas < most and 0.7 < est.rms_refl / meas < 1.4
 
     p.reset()
     run = run_shared(p, cfg, 2, LocalShares(p, cfg))
-    assert run is not None and run.stats.rays <= budget and run.stats.stopped_by == "ray_budget"
-    assert run.rounds and run.rounds[0] < planned
-    assert any(c.startswith("ray budget: the final gather cut") for c in run.choices)
+    assert run is not None and 0.9 * budget <= run.stats.rays <= budget and run.stats.stopped_by == "ray_budget"
+    assert run.rounds and _measured_refl(p, ref, ref_noise) < 1.2 * most
 
 
 def test_within_budget_cuts_a_round_to_what_the_budget_leaves():
