@@ -418,9 +418,22 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
         stopped = "stopped"
     t1 = time.perf_counter()
     receivers = int(patches.rho.any(axis=1).sum())
-    more = within_budget(first + first % 2, cfg.max_rays, shot_rays, receivers)
-    budget_cut = more < first
-    cut = [budget_cut_note(more, first, cfg.max_rays, shot_rays)] if budget_cut and not stopped else []
+
+    def fit(rays: int, used: int) -> tuple[int, str]:
+        """A gather round cut to what --max-rays and --time-limit (at the run's rate so far) leave,
+        and the limit that cut it ("" when none did)."""
+        got, by = within_budget(rays, cfg.max_rays, used, receivers), "ray_budget"
+        if cfg.time_limit:
+            elapsed = time.perf_counter() - t0
+            left = used / max(elapsed, 1e-9) * (cfg.time_limit - elapsed)
+            timed = within_budget(rays, used + int(max(left, 0.0)), used, receivers)
+            if timed < got:
+                got, by = timed, "time_limit"
+        return got, by if got < rays else ""
+
+    more, budget_cut = fit(first + first % 2, shot_rays)
+    limit = f"--time-limit {cfg.time_limit:g}" if budget_cut == "time_limit" else cfg.max_rays
+    cut = [budget_cut_note(more, first, limit, shot_rays)] if budget_cut and not stopped else []
     if more >= 2 and stopped == "" and receivers:
         fg = FinalGather(patches, None, shot.diff, shot.direct, shot.direct_a, cfg.batch_rays)
         pos = [np.searchsorted(fg.rec, rows) for rows in parts]
@@ -444,15 +457,15 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
                 break
             want = top_up(sum(rounds), first, est.rms_refl, cfg.accuracy)
             want += want % 2
-            more = within_budget(want, cfg.max_rays, shot_rays + gather_rays, receivers)
-            budget_cut = budget_cut or more < want
+            more, by = fit(want, shot_rays + gather_rays)
+            budget_cut = budget_cut or by
             if more < 2:
                 break
     seconds["gather_s"] = time.perf_counter() - t1
     wall = time.perf_counter() - t0
     rays = shot_rays + gather_rays
     if not stopped:
-        stopped = "accuracy" if est.rms_refl <= cfg.accuracy else "ray_budget" if budget_cut else "noise_floor"
+        stopped = "accuracy" if est.rms_refl <= cfg.accuracy else budget_cut or "noise_floor"
     stats = Stats(shots=sum(r.shots for r in replicas), rays=rays, batches=sum(r.batches for r in replicas),
                   trace_seconds=float(sum(r.trace_seconds for r in replicas)), wall_seconds=wall, stopped_by=stopped)
     if rounds:

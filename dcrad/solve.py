@@ -183,7 +183,8 @@ class Solver:
         #: gather rays per receiver of the final gather of the indirect light (final.py; 0: none);
         #: set when the direct light is gathered from exact form factors in accuracy mode
         self.final_rays = 0
-        self.budget_cut = False  #: the final gather was cut to what --max-rays left (``within_budget``)
+        #: the final gather was cut to what a limit left (``within_budget``): "ray_budget" or "time_limit"
+        self.budget_cut = ""
         #: the final gather has run (it runs once, when the shooting has shot nearly all light)
         self.finalised = False
         self._final: FinalGather | None = None
@@ -206,7 +207,8 @@ class Solver:
         #: the density; the replicas plan, and a budget coarsens, the job's gather: share.run_replica)
         self.planned_final_rays = 0
         self._fitted = False  #: ``fit_budget`` has run
-        self._t0 = time.perf_counter()
+        self._binding = "ray_budget"  #: the limit ``budget_left`` found the least (its stop reason)
+        self._t0 = clock()
 
     # == one Embree call ===========================================================
     def stiffness(self) -> "Stiffness":
@@ -576,13 +578,35 @@ class Solver:
         shoot = float(emitted.sum()) * rho / (1.0 - min(rho, 0.95)) / max(ppr, 1e-300)
         return shoot + plan.final_rays * receivers * (1.0 + BRIGHT_SHARE) * self.shoot_share
 
-    def budget_left(self) -> int:
-        """Rays --max-rays leaves this run (a shared run's replica: its 1/k of what the shared
-        direct gather left)."""
+    def budget_left(self, time: bool = False) -> int | None:
+        """Rays this run's limits leave it (None: no limit): what --max-rays leaves (a shared run's
+        replica: its 1/k of what the shared direct gather left), and with ``time`` what --time-limit
+        leaves at the run's rate so far (rays a second since its start), whichever is less.  The plan
+        is fitted to the ray budget only (``fit_budget``): a run's seconds are not in proportion to
+        its rays (a coarser shooting makes more shots of fewer rays, each with its own cost: the
+        office 3x3 fitted to 1 s traced 1.1M rays where the plan traced 2.1M), so a time limit only
+        cuts the final gather (``finish``)."""
         cfg = self.config
-        spent = self.stats.rays + (self.preset_direct.rays * self.shoot_share if self.preset_direct is not None
-                                   else 0)
-        return int(cfg.max_rays - spent)
+        left: list[float] = []
+        if cfg.max_rays:
+            spent = self.stats.rays + (self.preset_direct.rays * self.shoot_share if self.preset_direct is not None
+                                       else 0)
+            left.append(cfg.max_rays - spent)
+        if time and cfg.time_limit:
+            elapsed = self.elapsed()
+            rate = self.stats.rays / elapsed if elapsed > 0 and self.stats.rays else 0.0
+            left.append(rate * (cfg.time_limit - elapsed) if rate else math.inf)
+        finite_left = [x for x in left if math.isfinite(x)]
+        if not finite_left:
+            return None
+        least = min(finite_left)
+        self._binding = "ray_budget" if cfg.max_rays and least == left[0] else "time_limit"
+        return int(least)
+
+    def limit_name(self) -> str:
+        """The flag ``budget_left`` found the least."""
+        cfg = self.config
+        return f"--max-rays {cfg.max_rays}" if self._binding == "ray_budget" else f"--time-limit {cfg.time_limit:g}"
 
     @staticmethod
     def budget_scale(left: float, need: float) -> float:
@@ -600,13 +624,13 @@ class Solver:
         rays are then kept for it (``gather_reserve``): the shooting stops short of them."""
         self._fitted = True
         cfg = self.config
-        if not cfg.max_rays or not by_accuracy(cfg):
+        left = self.budget_left()
+        if left is None or not by_accuracy(cfg):
             return
         receivers = int(self.patches.rho.any(axis=1).sum())
         per_ray = receivers * (1.0 + BRIGHT_SHARE) * self.shoot_share  # this run's share of a gather ray
         pending = self.final_pending()
         shoot, gather = self.shoot_prediction(), (self.final_rays * per_ray if pending else 0.0)
-        left = self.budget_left()
         f = self.budget_scale(left, shoot + gather)
         if 0.0 < f < 1.0:
             self.power_per_ray /= f
@@ -616,7 +640,7 @@ class Solver:
             takes = f"{shoot:.3g} shooting" + (f", {gather:.3g} in the final gather" if pending else "")
             gives = (f"shooting at {float(self.ledger.emitted.sum()) / self.power_per_ray:.3g} rays per emitted "
                      f"power" + (f", {self.final_rays} gather rays per receiving patch" if pending else ""))
-            self.choices.append(f"ray budget: --max-rays {cfg.max_rays} leaves {left} rays{share}, and the plan "
+            self.choices.append(f"ray budget: {self.limit_name()} leaves about {left} rays{share}, and the plan "
                                 f"would take about {shoot + gather:.3g} ({takes}): its density is coarsened to "
                                 f"{f:.2g}x ({gives}) to fit")
         if pending:
@@ -656,10 +680,16 @@ class Solver:
         cfg = self.config
         first = self.final_rays
         receivers = int(self.patches.rho.any(axis=1).sum())
-        cut = within_budget(first, cfg.max_rays, self.stats.rays, receivers)
+
+        def fit(rays: int) -> int:  # a round cut to what the limits leave (--max-rays, --time-limit)
+            left = self.budget_left(time=True)
+            return rays if left is None else within_budget(rays, self.stats.rays + left, self.stats.rays,
+                                                           receivers)
+
+        cut = fit(first)
         if cut < first:
-            self.budget_cut = True
-            self.choices.append(budget_cut_note(cut, first, cfg.max_rays, self.stats.rays))
+            self.budget_cut = self._binding
+            self.choices.append(budget_cut_note(cut, first, self.limit_name(), self.stats.rays))
         self.final(cut)
         for _ in range(FINAL_ROUNDS - 1):
             if not by_accuracy(cfg) or self._final is None:
@@ -668,9 +698,9 @@ class Solver:
             if err <= cfg.accuracy:
                 return
             want = top_up(2 * self._final.per_half, first, err, cfg.accuracy)
-            more = within_budget(want, cfg.max_rays, self.stats.rays, receivers)
+            more = fit(want)
             if more < want:
-                self.budget_cut = True
+                self.budget_cut = self._binding
             if more < 2:
                 return
             if cfg.time_limit and self.elapsed() >= cfg.time_limit:
@@ -679,7 +709,7 @@ class Solver:
 
     # == the loop ==================================================================
     def elapsed(self) -> float:
-        return time.perf_counter() - self._t0
+        return clock() - self._t0
 
     def residual(self) -> float:
         return self.ledger.residual()
@@ -741,8 +771,10 @@ class Solver:
                 return "noise_floor"
         if cfg.time_limit and self.elapsed() >= cfg.time_limit:
             return "time_limit"
-        if cfg.max_rays and self.final_pending() and self.stats.rays + self.gather_reserve >= cfg.max_rays:
-            return "final_gather"  # what is left of the budget is the gather's (``fit_budget``)
+        if self.gather_reserve and self.final_pending():
+            left = self.budget_left()
+            if left is not None and left <= self.gather_reserve:
+                return "final_gather"  # what is left of the budget is the gather's (``fit_budget``)
         if cfg.max_rays and self.stats.rays >= cfg.max_rays:
             return "ray_budget"
         return ""
@@ -752,7 +784,7 @@ class Solver:
 
         on_progress(solver) is called after every batch.
         """
-        self._t0 = time.perf_counter() - self.stats.wall_seconds
+        self._t0 = clock() - self.stats.wall_seconds
         self.pool.invalidate()  # the table may have changed since the last run
         self.recount()
         self.snapshot(force=True)
@@ -781,7 +813,7 @@ class Solver:
             self.finish()
             if by_accuracy(self.config):
                 met = self.target_error() <= self.config.accuracy
-                reason = "accuracy" if met else "ray_budget" if self.budget_cut else "noise_floor"
+                reason = "accuracy" if met else self.budget_cut or "noise_floor"
         self.recount()
         self.snapshot(force=True)
         self.stats.stopped_by = reason
@@ -817,6 +849,9 @@ class Solver:
                                                                                                   self.patches)
 
 
+#: the solver's clock (``time.perf_counter``; a test may run it on a clock of its own)
+clock = time.perf_counter
+
 #: a run under --max-rays plans its shooting and gather to this share of what the budget leaves
 #: (``Solver.fit_budget``): the rest is for the shots' ray floors and the prediction's error
 BUDGET_FIT = 0.85
@@ -828,10 +863,13 @@ MIN_BUDGET_SHADOW = 16
 DIRECT_BUDGET_SHARE = 0.5
 
 
-def budget_cut_note(cut: int, planned: int, max_rays: int, used: int) -> str:
-    """The report's line on a final gather cut by ``within_budget`` (in process and shared runs)."""
-    return (f"ray budget: the final gather cut to {cut} rays per receiving patch (planned {planned}), what "
-            f"--max-rays {max_rays} leaves after {used} rays" + ("; not gathered: B is the shot solution"
+def budget_cut_note(cut: int, planned: int, limit, used: int) -> str:
+    """The report's line on a final gather cut by ``within_budget`` (in process and shared runs);
+    ``limit``: the --max-rays budget, or the flags that cut it (``Solver.limit_name``)."""
+    what = f"--max-rays {limit}" if isinstance(limit, int) else limit
+    kind = "time limit" if what.startswith("--time-limit") else "ray budget"
+    return (f"{kind}: the final gather cut to {cut} rays per receiving patch (planned {planned}), what "
+            f"{what} leaves after {used} rays" + ("; not gathered: B is the shot solution"
                                                                 if cut < 2 else ""))
 
 

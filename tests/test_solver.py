@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -351,6 +352,28 @@ def test_a_ray_budget_coarsens_the_whole_plan_to_fit(office_reference, budget, m
     run = run_shared(p, cfg, 2, LocalShares(p, cfg))
     assert run is not None and 0.9 * budget <= run.stats.rays <= budget and run.stats.stopped_by == "ray_budget"
     assert run.rounds and _measured_refl(p, ref, ref_noise) < 1.2 * most
+
+
+def test_the_final_gather_keeps_to_the_time_limit(office_reference, monkeypatch):
+    """The office at 2% traces 4.67M rays, 2.47M of them in the final gather after the shooting.
+    On a clock of one microsecond a ray (``solve.clock``: the test's, so no timing), a time limit
+    of 3 s is 3M rays: the gather is cut to what the limit leaves at the run's rate, the run ends
+    by the time limit and says so.  (The gather ran whole before: the office took 2.1 s under
+    --time-limit 1.5.)  The plan itself is not coarsened for time (a run's seconds are not in
+    proportion to its rays): the shooting is the one the 2% target plans."""
+    from dcrad import solve
+
+    p, ref, ref_noise = office_reference
+    p.reset()
+    s = Solver(p, SolverConfig(accuracy=0.02, time_limit=3.0, seed=2))
+    monkeypatch.setattr(solve, "clock", lambda: s.stats.rays * 1e-6)
+    st = s.run()
+    assert st.stopped_by == "time_limit" and s.elapsed() <= 3.0
+    line = next(c for c in s.choices if c.startswith("time limit: the final gather cut"))
+    cut, planned = (int(x) for x in re.findall(r"cut to (\d+) rays .*planned (\d+)\)", line)[0])
+    assert planned == 124 and 2 <= cut < planned and s._final is not None and 2 * s._final.per_half >= cut
+    assert not any("coarsened" in c for c in s.choices)
+    assert _measured_refl(p, ref, ref_noise) < 0.05  # 3.1% on this clock's 3M rays; the whole plan: 1.4%
 
 
 def test_within_budget_cuts_a_round_to_what_the_budget_leaves():
