@@ -558,15 +558,14 @@ class Solver:
                                 f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
         return self.counted(len(emitters), shadow_counted + int(counts.sum()))
 
-    def shoot_prediction(self, power_per_ray: float | None = None) -> float:
-        """Rays the shooting will take from here at ``power_per_ray`` (default the run's): the unshot
-        power and its reflections, P / (1 - rho) for the scene's mean reflectance rho, a ray per
-        power_per_ray (the shots' floors come on top: ``BUDGET_FIT`` leaves them room)."""
+    def shoot_prediction(self) -> float:
+        """Rays the shooting will take from here: the unshot power and its reflections, P / (1 - rho)
+        for the scene's mean reflectance rho, a ray per ``power_per_ray`` (the shots' floors come on
+        top: ``BUDGET_FIT`` leaves them room)."""
         p = self.patches
         unshot = np.abs(self.ledger.unshot)
         rho = float(np.dot(p.mean_rho, unshot) / max(float(unshot.sum()), 1e-300))
-        ppr = self.power_per_ray if power_per_ray is None else power_per_ray
-        return float(unshot.sum()) / (1.0 - min(rho, 0.95)) / max(ppr, 1e-300)
+        return float(unshot.sum()) / (1.0 - min(rho, 0.95)) / max(self.power_per_ray, 1e-300)
 
     def plan_rays(self, plan, receivers: int) -> float:
         """Rays a final plan's shooting and gather would take from here (before the direct gather:
