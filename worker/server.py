@@ -259,6 +259,12 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         return pb.Empty()
 
 
+#: s a re-registration (the heartbeat) may wait for a busy coordinator: one streaming a big
+#: share's arrays answers late (at the 20x20 office, 1.27M patches, 5 s ran out and the worker
+#: logged its coordinator "unreachable" while the job ran on)
+HEARTBEAT_TIMEOUT = 30.0
+
+
 async def register_forever(coordinator: str, address: str, capacity: int, name: str,
                            stop: asyncio.Event, period: float = 5.0) -> None:
     """Register with the coordinator, retrying with backoff; then re-register every ``period`` s."""
@@ -273,7 +279,8 @@ async def register_forever(coordinator: str, address: str, capacity: int, name: 
         while not stop.is_set():
             try:
                 await stub.RegisterWorker(pb.WorkerInfo(address=address, capacity=capacity, name=name),
-                                          timeout=5.0, wait_for_ready=not registered)
+                                          timeout=HEARTBEAT_TIMEOUT if registered else 5.0,
+                                          wait_for_ready=not registered)
                 if not registered:
                     log.info("registered with coordinator %s as %s", coordinator, address)
                 registered, delay = True, period
