@@ -95,7 +95,7 @@ def main() -> None:
           "estimate refl | measured refl | measured norm | est/meas | refl x sqrt(Mrays) | cpu s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
-        for name in args.scenes.split(";" if ";" in args.scenes else ","):
+        for name in [n for n in args.scenes.split(";" if ";" in args.scenes else ",") if n]:
             path = resolve_scene(name, Path(tmp) / name)
             _, patches, _ = prepare(path)
             tracer = Tracer(patches.triangles)
