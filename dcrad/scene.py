@@ -44,6 +44,7 @@ import os
 import struct
 import tempfile
 from dataclasses import dataclass, field
+from urllib.parse import unquote
 
 import numpy as np
 
@@ -434,11 +435,12 @@ def gltf_structure(header: dict, path: str, glb_bin: int | None = None) -> None:
             except (ValueError, IndexError):
                 raise SceneFormatError(f"{where}: buffer {i}'s data: URI is not base64") from None
         elif isinstance(uri, str):
-            full = os.path.join(os.path.dirname(os.path.abspath(path)), uri)
-            try:
-                held = os.path.getsize(full)
-            except OSError:
-                raise SceneFormatError(f"{where}: buffer {i}'s file '{uri}' cannot be read") from None
+            folder = os.path.dirname(os.path.abspath(path))
+            # percent-decoded as a URI (inside_folder), or as written (trimesh reads either)
+            full = [inside_folder(folder, uri, path, f"buffer {i}"), os.path.join(folder, uri)]
+            held = next((os.path.getsize(f) for f in full if os.path.isfile(f)), -1)
+            if held < 0:
+                raise SceneFormatError(f"{where}: buffer {i}'s file '{uri}' cannot be read")
         elif i == 0 and glb_bin is not None:
             held = glb_bin
         else:
@@ -666,6 +668,22 @@ def _gltf_blob(path: str, header: dict, uri, image: dict) -> bytes:
     return data[off: off + int(view["byteLength"])]
 
 
+def _uri_resolver(trimesh, path: str):
+    """trimesh's file resolver for a glTF's folder that also reads a buffer or image named as a URI
+    (percent-escaped, as glTF writes them: trimesh looked for 'my%20quad.bin' literally)."""
+
+    class UriResolver(trimesh.resolvers.FilePathResolver):
+        def get(self, name: str):
+            try:
+                return super().get(name)
+            except FileNotFoundError:
+                if unquote(name) == name:
+                    raise
+                return super().get(unquote(name))
+
+    return UriResolver(os.path.dirname(os.path.abspath(path)))
+
+
 def _load_gltf(path: str, warnings: list, scale: float):
     import trimesh  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module; trimesh costs 0.5 s
 
@@ -677,7 +695,7 @@ def _load_gltf(path: str, warnings: list, scale: float):
     images: dict = {}
     sides, textured, tex_maps, nf = [], [], [], 0
     try:
-        scene = trimesh.load(path, force="scene")
+        scene = trimesh.load(path, force="scene", resolver=_uri_resolver(trimesh, path))
     except Exception as exc:  # trimesh raises many kinds
         raise SceneFormatError(f"cannot load glTF {path}: {type(exc).__name__}: {exc}") from None
     if not isinstance(scene, trimesh.Scene):  # force="scene" always gives one; the stub says Geometry

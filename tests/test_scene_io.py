@@ -12,7 +12,7 @@ import pytest
 
 from dcrad.errors import ConfigError, SceneFormatError, SceneValueError
 from dcrad.patches import triangle_areas
-from dcrad.scene import DEFAULT_RHO, load_scene
+from dcrad.scene import DEFAULT_RHO, gltf_header, load_scene
 
 MTL = """\
 newmtl white
@@ -457,6 +457,21 @@ def test_gltf_broken_structure_names_the_item(tmp_path, case):
     with pytest.raises(SceneFormatError) as exc:
         load_scene(tmp_path / "b.gltf")
     assert words in str(exc.value) and "b.gltf" in str(exc.value)
+
+
+@pytest.mark.parametrize("uri", ["my%20quad.bin", "my quad.bin"])
+def test_gltf_buffer_file_named_as_a_uri_is_read(tmp_path, uri):
+    """A buffer file named with percent-escapes (a URI, as glTF writes them: trimesh alone looked
+    for 'my%20quad.bin' literally and failed) or as written is found and read."""
+    g = hand_gltf([{"name": "m"}])
+    data = base64.b64decode(g["buffers"][0]["uri"].split(",", 1)[1])
+    (tmp_path / "my quad.bin").write_bytes(data)
+    g["buffers"][0]["uri"] = uri
+    (tmp_path / "q.gltf").write_text(json.dumps(g))
+    assert gltf_header(str(tmp_path / "q.gltf"))["buffers"][0]["uri"] == uri
+    (tmp_path / "d.gltf").write_text(json.dumps(hand_gltf([{"name": "m"}])))  # the same, its buffer inline
+    got, inline = load_scene(tmp_path / "q.gltf"), load_scene(tmp_path / "d.gltf")
+    assert len(got) == 2 and np.array_equal(got.vertices, inline.vertices)
 
 
 def test_truncated_glb_is_refused_naming_its_buffer(tmp_path):
