@@ -336,7 +336,8 @@ def gltf_header(path: str) -> dict:
             length, kind = struct.unpack_from("<I4s", blob, 12)
             if magic != b"glTF" or version != 2 or kind != b"JSON":
                 raise ValueError("not a glTF 2.0 binary (bad header or first chunk is not JSON)")
-            glb_bin = _glb_bin_length(blob, 20 + length)
+            chunk = _glb_bin(blob)
+            glb_bin = None if chunk is None else len(chunk)
             blob = blob[20 : 20 + length]
         else:
             glb_bin = None
@@ -350,14 +351,14 @@ def gltf_header(path: str) -> dict:
     return header
 
 
-def _glb_bin_length(blob: bytes, at: int) -> int | None:
-    """Length of a GLB's binary chunk starting at ``at`` (None without one)."""
-    if len(blob) < at + 8:
+def _glb_bin(glb: bytes) -> bytes | None:
+    """A GLB's binary chunk (after its JSON chunk; None without one), as much of it as the file
+    holds (a truncated file holds less than its chunk claims)."""
+    at = 20 + struct.unpack_from("<I", glb, 12)[0]
+    if len(glb) < at + 8:
         return None
-    length, kind = struct.unpack_from("<I4s", blob, at)
-    if kind != b"BIN\0":
-        return None
-    return min(length, len(blob) - at - 8)  # a truncated file holds less than its chunk claims
+    length, kind = struct.unpack_from("<I4s", glb, at)
+    return glb[at + 8: at + 8 + length] if kind == b"BIN\0" else None
 
 
 #: bytes of a glTF accessor's component types, and components of its element types
@@ -660,10 +661,7 @@ def _gltf_blob(path: str, header: dict, uri, image: dict) -> bytes:
                 open(inside_folder(os.path.dirname(os.path.abspath(path)), buri, path, "buffer"), "rb").read())
     else:  # the GLB binary chunk
         with open(path, "rb") as fh:
-            glb = fh.read()
-        jlen = struct.unpack_from("<I", glb, 12)[0]
-        blen = struct.unpack_from("<I", glb, 20 + jlen)[0]
-        data = glb[28 + jlen: 28 + jlen + blen]
+            data = _glb_bin(fh.read()) or b""
     off = int(view.get("byteOffset", 0))
     return data[off: off + int(view["byteLength"])]
 

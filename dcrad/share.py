@@ -58,7 +58,7 @@ from .patches import Patches
 from .rays import Tracer
 from .report import RunBooks
 from .shooters import spatial_order
-from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, budget_cut_note, top_up, within_budget
+from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, budget_cut_note, fit_round, top_up
 
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
@@ -419,21 +419,8 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     t1 = time.perf_counter()
     receivers = int(patches.rho.any(axis=1).sum())
 
-    def fit(rays: int, used: int) -> tuple[int, str]:
-        """A gather round cut to what --max-rays and --time-limit (at the run's rate so far) leave,
-        and the limit that cut it ("" when none did)."""
-        got, by = within_budget(rays, cfg.max_rays, used, receivers), "ray_budget"
-        if cfg.time_limit:
-            elapsed = time.perf_counter() - t0
-            left = used / max(elapsed, 1e-9) * (cfg.time_limit - elapsed)
-            timed = within_budget(rays, used + int(max(left, 0.0)), used, receivers)
-            if timed < got:
-                got, by = timed, "time_limit"
-        return got, by if got < rays else ""
-
-    more, budget_cut = fit(first + first % 2, shot_rays)
-    limit = f"--time-limit {cfg.time_limit:g}" if budget_cut == "time_limit" else cfg.max_rays
-    cut = [budget_cut_note(more, first, limit, shot_rays)] if budget_cut and not stopped else []
+    more, budget_cut = fit_round(first + first % 2, cfg, shot_rays, time.perf_counter() - t0, receivers)
+    cut = [budget_cut_note(more, first, budget_cut, cfg, shot_rays)] if budget_cut and not stopped else []
     if more >= 2 and stopped == "" and receivers:
         fg = FinalGather(patches, None, shot.diff, shot.direct, shot.direct_a, cfg.batch_rays)
         pos = [np.searchsorted(fg.rec, rows) for rows in parts]
@@ -457,7 +444,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
                 break
             want = top_up(sum(rounds), first, est.rms_refl, cfg.accuracy)
             want += want % 2
-            more, by = fit(want, shot_rays + gather_rays)
+            more, by = fit_round(want, cfg, shot_rays + gather_rays, time.perf_counter() - t0, receivers)
             budget_cut = budget_cut or by
             if more < 2:
                 break

@@ -183,7 +183,7 @@ class Solver:
         #: gather rays per receiver of the final gather of the indirect light (final.py; 0: none);
         #: set when the direct light is gathered from exact form factors in accuracy mode
         self.final_rays = 0
-        #: the final gather was cut to what a limit left (``within_budget``): "ray_budget" or "time_limit"
+        #: the final gather was cut to what a limit left (``fit_round``): "ray_budget" or "time_limit"
         self.budget_cut = ""
         #: the final gather has run (it runs once, when the shooting has shot nearly all light)
         self.finalised = False
@@ -207,7 +207,6 @@ class Solver:
         #: the density; the replicas plan, and a budget coarsens, the job's gather: share.run_replica)
         self.planned_final_rays = 0
         self._fitted = False  #: ``fit_budget`` has run
-        self._binding = "ray_budget"  #: the limit ``budget_left`` found the least (its stop reason)
         self._t0 = clock()
 
     # == one Embree call ===========================================================
@@ -558,54 +557,39 @@ class Solver:
                                 f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
         return self.counted(len(emitters), shadow_counted + int(counts.sum()))
 
+    def with_reflections(self, power: np.ndarray) -> tuple[float, float]:
+        """(W, W): the power (3,) and all its reflections, P / (1 - rho) for the scene's mean
+        reflectance rho weighted by the power's channels, and P itself."""
+        power = np.abs(power)
+        total = float(power.sum())
+        rho = float(np.dot(self.patches.mean_rho, power) / max(total, 1e-300))
+        return total / (1.0 - min(rho, 0.95)), total
+
     def shoot_prediction(self) -> float:
-        """Rays the shooting will take from here: the unshot power and its reflections, P / (1 - rho)
-        for the scene's mean reflectance rho, a ray per ``power_per_ray`` (the shots' floors come on
-        top: ``BUDGET_FIT`` leaves them room)."""
-        p = self.patches
-        unshot = np.abs(self.ledger.unshot)
-        rho = float(np.dot(p.mean_rho, unshot) / max(float(unshot.sum()), 1e-300))
-        return float(unshot.sum()) / (1.0 - min(rho, 0.95)) / max(self.power_per_ray, 1e-300)
+        """Rays the shooting will take from here: the unshot power and its reflections, a ray per
+        ``power_per_ray`` (the shots' floors come on top: ``BUDGET_FIT`` leaves them room)."""
+        return self.with_reflections(self.ledger.unshot)[0] / max(self.power_per_ray, 1e-300)
 
     def plan_rays(self, plan, receivers: int) -> float:
         """Rays a final plan's shooting and gather would take from here (before the direct gather:
-        the reflected share of the emitted power is what will be shot)."""
-        p = self.patches
-        emitted = np.abs(self.ledger.emitted)
-        rho = float(np.dot(p.mean_rho, emitted) / max(float(emitted.sum()), 1e-300))
-        ppr = float(emitted.sum()) / (plan.shoot_rays_per_power * self.shoot_share)
-        shoot = float(emitted.sum()) * rho / (1.0 - min(rho, 0.95)) / max(ppr, 1e-300)
+        the reflections of the emitted power are what will be shot)."""
+        everything, emitted = self.with_reflections(self.ledger.emitted)
+        ppr = emitted / (plan.shoot_rays_per_power * self.shoot_share)
+        shoot = (everything - emitted) / max(ppr, 1e-300)
         return shoot + plan.final_rays * receivers * (1.0 + BRIGHT_SHARE) * self.shoot_share
 
-    def budget_left(self, time: bool = False) -> int | None:
-        """Rays this run's limits leave it (None: no limit): what --max-rays leaves (a shared run's
-        replica: its 1/k of what the shared direct gather left), and with ``time`` what --time-limit
-        leaves at the run's rate so far (rays a second since its start), whichever is less.  The plan
-        is fitted to the ray budget only (``fit_budget``): a run's seconds are not in proportion to
-        its rays (a coarser shooting makes more shots of fewer rays, each with its own cost: the
-        office 3x3 fitted to 1 s traced 1.1M rays where the plan traced 2.1M), so a time limit only
-        cuts the final gather (``finish``)."""
+    def budget_left(self) -> int | None:
+        """Rays --max-rays leaves this run (None: no budget; a shared run's replica: its 1/k of what
+        the shared direct gather left).  The plan is fitted to the ray budget only (``fit_budget``):
+        a run's seconds are not in proportion to its rays (a coarser shooting makes more shots of
+        fewer rays, each with its own cost: the office 3x3 fitted to 1 s traced 1.1M rays where the
+        plan traced 2.1M), so a time limit only cuts the final gather (``fit_round``)."""
         cfg = self.config
-        left: list[float] = []
-        if cfg.max_rays:
-            spent = self.stats.rays + (self.preset_direct.rays * self.shoot_share if self.preset_direct is not None
-                                       else 0)
-            left.append(cfg.max_rays - spent)
-        if time and cfg.time_limit:
-            elapsed = self.elapsed()
-            rate = self.stats.rays / elapsed if elapsed > 0 and self.stats.rays else 0.0
-            left.append(rate * (cfg.time_limit - elapsed) if rate else math.inf)
-        finite_left = [x for x in left if math.isfinite(x)]
-        if not finite_left:
+        if not cfg.max_rays:
             return None
-        least = min(finite_left)
-        self._binding = "ray_budget" if cfg.max_rays and least == left[0] else "time_limit"
-        return int(least)
-
-    def limit_name(self) -> str:
-        """The flag ``budget_left`` found the least."""
-        cfg = self.config
-        return f"--max-rays {cfg.max_rays}" if self._binding == "ray_budget" else f"--time-limit {cfg.time_limit:g}"
+        spent = self.stats.rays + (self.preset_direct.rays * self.shoot_share if self.preset_direct is not None
+                                   else 0)
+        return int(cfg.max_rays - spent)
 
     @staticmethod
     def budget_scale(left: float, need: float) -> float:
@@ -639,7 +623,7 @@ class Solver:
             takes = f"{shoot:.3g} shooting" + (f", {gather:.3g} in the final gather" if pending else "")
             gives = (f"shooting at {float(self.ledger.emitted.sum()) / self.power_per_ray:.3g} rays per emitted "
                      f"power" + (f", {self.final_rays} gather rays per receiving patch" if pending else ""))
-            self.choices.append(f"ray budget: {self.limit_name()} leaves about {left} rays{share}, and the plan "
+            self.choices.append(f"ray budget: --max-rays {cfg.max_rays} leaves about {left} rays{share}, and the plan "
                                 f"would take about {shoot + gather:.3g} ({takes}): its density is coarsened to "
                                 f"{f:.2g}x ({gives}) to fit")
         if pending:
@@ -680,15 +664,10 @@ class Solver:
         first = self.final_rays
         receivers = int(self.patches.rho.any(axis=1).sum())
 
-        def fit(rays: int) -> int:  # a round cut to what the limits leave (--max-rays, --time-limit)
-            left = self.budget_left(time=True)
-            return rays if left is None else within_budget(rays, self.stats.rays + left, self.stats.rays,
-                                                           receivers)
-
-        cut = fit(first)
-        if cut < first:
-            self.budget_cut = self._binding
-            self.choices.append(budget_cut_note(cut, first, self.limit_name(), self.stats.rays))
+        cut, by = fit_round(first, cfg, self.stats.rays, self.elapsed(), receivers)
+        if by:
+            self.budget_cut = by
+            self.choices.append(budget_cut_note(cut, first, by, cfg, self.stats.rays))
         self.final(cut)
         for _ in range(FINAL_ROUNDS - 1):
             if not by_accuracy(cfg) or self._final is None:
@@ -697,9 +676,8 @@ class Solver:
             if err <= cfg.accuracy:
                 return
             want = top_up(2 * self._final.per_half, first, err, cfg.accuracy)
-            more = fit(want)
-            if more < want:
-                self.budget_cut = self._binding
+            more, by = fit_round(want, cfg, self.stats.rays, self.elapsed(), receivers)
+            self.budget_cut = by or self.budget_cut
             if more < 2:
                 return
             if cfg.time_limit and self.elapsed() >= cfg.time_limit:
@@ -862,14 +840,27 @@ MIN_BUDGET_SHADOW = 16
 DIRECT_BUDGET_SHARE = 0.5
 
 
-def budget_cut_note(cut: int, planned: int, limit, used: int) -> str:
-    """The report's line on a final gather cut by ``within_budget`` (in process and shared runs);
-    ``limit``: the --max-rays budget, or the flags that cut it (``Solver.limit_name``)."""
-    what = f"--max-rays {limit}" if isinstance(limit, int) else limit
-    kind = "time limit" if what.startswith("--time-limit") else "ray budget"
+def budget_cut_note(cut: int, planned: int, limit: str, config: SolverConfig, used: int) -> str:
+    """The report's line on a final gather cut by ``fit_round`` to what ``limit`` ("ray_budget" or
+    "time_limit") of ``config`` left (in process and shared runs)."""
+    kind, flag = (("time limit", f"--time-limit {config.time_limit:g}") if limit == "time_limit" else
+                  ("ray budget", f"--max-rays {config.max_rays}"))
     return (f"{kind}: the final gather cut to {cut} rays per receiving patch (planned {planned}), what "
-            f"{what} leaves after {used} rays" + ("; not gathered: B is the shot solution"
-                                                                if cut < 2 else ""))
+            f"{flag} leaves after {used} rays" + ("; not gathered: B is the shot solution"
+                                                  if cut < 2 else ""))
+
+
+def fit_round(rays: int, config: SolverConfig, used: int, elapsed: float, receivers: int) -> tuple[int, str]:
+    """A final-gather round of ``rays`` a receiver cut to what --max-rays leaves after ``used`` rays
+    and what --time-limit leaves after ``elapsed`` s at the run's rate so far (``used / elapsed``
+    rays a second), and the limit that cut it: "ray_budget", "time_limit" or "" (none did)."""
+    got, by = within_budget(rays, config.max_rays, used, receivers), "ray_budget"
+    if config.time_limit and used and elapsed > 0:
+        left = used / elapsed * (config.time_limit - elapsed)
+        timed = within_budget(rays, used + int(max(left, 0.0)), used, receivers)
+        if timed < got:
+            got, by = timed, "time_limit"
+    return got, by if got < rays else ""
 
 
 def within_budget(rays: int, max_rays: int, used: int, receivers: int) -> int:
