@@ -46,6 +46,7 @@ from .boundary import (
 from .config import DivideConfig, SolverConfig
 from .energy import Ledger
 from .errors import ConfigError
+from .mesh import estimate_elements
 from .noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
 from .partition import clip, partition
 from .patches import Patches
@@ -816,15 +817,8 @@ def placement(work: Sequence[float], workers: int) -> list[int]:
 
 
 def estimate_patches(triangles: np.ndarray, patch_size: float) -> int:
-    """About how many patches meshing (n,3,3) triangles to ``patch_size`` gives: midpoint
-    subdivision quarters a triangle until its longest edge is at most the size; trimesh
-    splits only the long edges, about 2/3 of that on the office (27.8k of 41.8k at 3x3
-    rooms, 201k of 315k at 8x8)."""
-    if len(triangles) == 0 or not patch_size > 0:
-        return len(triangles)
-    e = np.linalg.norm(triangles - np.roll(triangles, 1, axis=1), axis=2).max(axis=1)
-    levels = np.ceil(np.log2(np.maximum(e / patch_size, 1.0)))
-    return int(np.sum(4.0 ** np.minimum(levels, 20)) * 2 / 3)
+    """About how many patches meshing (n,3,3) triangles to ``patch_size`` gives (mesh.estimate_elements)."""
+    return estimate_elements(triangles, patch_size)
 
 
 def auto_workers(n_patches: int, cpus: int, gathers: bool = False) -> tuple[int, str]:

@@ -206,9 +206,13 @@ class NoiseTally:
         """(k,3) W: the half-solutions' difference of the unshot power of ``shooters``."""
         return self.unshot[shooters] * area[shooters, None]
 
-    def shot(self, shooters: np.ndarray) -> None:
-        """Shooters gave up their unshot power, its half-difference with it."""
-        self.unshot[shooters] = 0.0
+    def shot(self, shooters: np.ndarray, keep: np.ndarray | None = None) -> None:
+        """Shooters gave up their unshot power, its half-difference with it (``keep`` (k,): the
+        share each kept, when a shot was capped; None: none)."""
+        if keep is None:
+            self.unshot[shooters] = 0.0
+        else:
+            self.unshot[shooters] *= keep[:, None]
 
     def commit(self, patches, land, received_a: np.ndarray | None) -> None:
         """Book one batch before ``deposit``: D and V of the rows hit, and the sums; O(rows hit).

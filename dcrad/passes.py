@@ -17,10 +17,12 @@ from .energy import ACCOUNTS, MAGNITUDES
 from .noise import finite
 from .solve import Solver
 
-__all__ = ["blend", "solve_to_accuracy", "PASS_SEED"]
+__all__ = ["blend", "solve_to_accuracy", "PASS_SEED", "PASS_GROWTH"]
 
 #: each further pass seeds its random streams this much after the pass before
 PASS_SEED = 7919
+#: a further pass is at most this many times denser than the pass before
+PASS_GROWTH = 4.0
 
 
 def blend(solver, saved: dict, weight_saved: float, weight_now: float) -> None:
@@ -68,7 +70,14 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         target = pass_target(est.rms_refl, goal)
         # never sparser than the pass before: at low densities the 32-ray floors and the gather's
         # tails make a pass's noise hard to predict
-        rpp = cfg.rays_per_power * max((est.noise_refl / target) ** 2 * 1.1, 1.0)
+        # and never more than PASS_GROWTH times denser: a pass's own noise can be far above what its
+        # density predicts (a lamp in a fixture), and escalating by the ratio ran a real office's third
+        # pass at 4e9 rays per emitted power, which no run can pay (issue 26)
+        want = max((est.noise_refl / target) ** 2 * 1.1, 1.0)
+        rpp = cfg.rays_per_power * min(want, PASS_GROWTH)
+        if want > PASS_GROWTH:
+            earlier.append(f"pass {passes + 1}: the target would want {want:.3g}x the density of pass {passes}; "
+                           f"held to {PASS_GROWTH:g}x (passes.PASS_GROWTH)")
         patches.reset()
         # its own random streams: a pass with the same seed would repeat the first one's rays
         solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target, seed=cfg.seed + PASS_SEED),

@@ -20,10 +20,10 @@ import numpy as np
 
 import scenes
 
-from . import export, photometry, render
+from . import export, mesh, photometry, render
 from .accuracy import describe, noise_floor_note, resolve
 from .config import SolverConfig
-from .divide import build_subscenes, estimate_patches, run_subscenes
+from .divide import build_subscenes, run_subscenes
 from .errors import ConfigError, SceneError
 from .passes import solve_to_accuracy
 from .patches import Patches
@@ -39,24 +39,19 @@ log = logging.getLogger("dcrad")
 
 
 def default_patch_size(scene) -> float:
-    """Automatic maximum patch edge (m), from the scene's own detail, not its size alone.
+    """Automatic element size (m): from the scene's light scale, not its triangulation (mesh.py).
 
-    The smaller of 1/40 of the box diagonal and 1/3 of the median edge of the
-    input triangles.  The median edge is a property of what the scene is made of
-    (rooms, doors, furniture), so a building of 400 rooms is meshed like one of 9
-    (the office: 0.40 m at 3x3, 8x8 and 20x20 rooms; the diagonal alone gave 2.9 m
-    at 20x20); the diagonal keeps small scenes of a few big triangles (Cornell,
-    furnace) as fine as before.
-    """
-    faces = scene.faces[scene.valid]
-    if len(faces) == 0:
-        return 0.0
-    used = scene.vertices[np.unique(faces)]
-    diag = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
-    tri = scene.vertices[faces]
-    edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
-    detail = float(np.median(edges)) / 3.0
-    return min(diag / 40.0, detail) if detail > 0 else diag / 40.0
+    The rays' mean free path / mesh.PATHS_PER_ELEMENT: the same for a building of 400 rooms as
+    for one, and for a file triangulated finely or coarsely (the median input edge this used
+    to follow meshed real models 8x to 65,000x too finely)."""
+    return mesh_choice(scene)[0]
+
+
+def mesh_choice(scene) -> tuple[float, str]:
+    """(automatic element size m, the report's sentence on how it was found); cached on the scene."""
+    if scene.element_choice is None:
+        scene.element_choice = mesh.element_size(scene.vertices, scene.faces[scene.valid])
+    return scene.element_choice
 
 
 def resolve_scene(spec: str, workdir: Path) -> Path:
@@ -101,7 +96,7 @@ def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str |
     if patch_size is not None and not (math.isfinite(patch_size) and patch_size >= 0):
         raise ConfigError(f"--patch-size {patch_size}: must be a finite number of metres > 0 (0: automatic)")
     size = patch_size if patch_size else default_patch_size(scene)
-    check_patch_count(estimate_patches(scene.vertices[scene.faces[scene.valid]], size), size)
+    check_patch_count(mesh.estimate_elements(scene.vertices[scene.faces[scene.valid]], size), size)
     patches = scene.patches(size)
     photometry.check_workplane(workplane, patches)
     if timings is not None:
@@ -453,6 +448,10 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     out = Path(out)
     t0 = time.perf_counter()
     warnings = list(scene.warnings) + books.warnings()
+    size = float(settings.get("patch_size_m") or 0.0)
+    auto = scene.element_choice if scene.element_choice is not None and scene.element_choice[0] == size else None
+    fronts = books.patches.source[~books.patches.is_back]
+    books.choices.insert(0, mesh.mesh_note(size, auto[1] if auto else None, fronts, len(scene.faces)))
     sections: dict = {}
     outputs = write_outputs(out, scene, books.patches, width, height, sections,
                             float(settings.get("workplane_m") or 0.0), tracer=tracer, views=views, painter=painter)

@@ -50,8 +50,9 @@ import numpy as np
 
 from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
+from .mesh import refine
 from .objfile import inside_folder, mtllib_files, parse_obj, read_mtl
-from .patches import Patches, subdivide, triangle_areas, triangle_normals
+from .patches import Patches, triangle_areas, triangle_normals
 from .texture import read_texture, uv_at, uv_means
 
 __all__ = ["Scene", "load_scene", "DEFAULT_RHO", "UP_AXES", "detect_up"]
@@ -106,6 +107,8 @@ class Scene:
     two_sided: np.ndarray | None = None  # (T,) bool, None: all one-sided
     textured: list = field(default_factory=list)  # material labels whose reflectance came from a texture
     texture_maps: list = field(default_factory=list)  # [TextureMap]: per-patch texture means when meshing
+    #: (automatic element size m, how it was found): pipeline.mesh_choice's cache
+    element_choice: tuple | None = None
 
     def __len__(self) -> int:
         return len(self.faces)
@@ -114,17 +117,14 @@ class Scene:
         """Mesh the valid triangles into patches.
 
         ``max_edge`` None or 0: one patch per valid triangle.  Otherwise every
-        triangle is split (trimesh midpoint subdivision) until no edge is
-        longer than ``max_edge`` metres.  ``Patches.source`` is the input
+        triangle larger than an element of that size (m) is bisected until it
+        is not (mesh.refine); smaller ones are kept whole.  ``Patches.source`` is the input
         triangle index; ``obj`` and ``names`` are carried over.
         """
         if max_edge is not None and (not math.isfinite(max_edge) or max_edge < 0):
             raise ConfigError(f"invalid max_edge={max_edge!r}: must be a finite number >= 0 (0: no meshing)")
         keep = np.flatnonzero(self.valid)
-        try:
-            v, f, idx = subdivide(self.vertices, self.faces[keep], max_edge or 0.0)
-        except ValueError as exc:  # subdivide_to_size gives up after max_iter
-            raise ConfigError(f"cannot mesh {self.path} with max_edge={max_edge}: {exc}") from None
+        v, f, idx = refine(self.vertices, self.faces[keep], max_edge or 0.0)
         src = keep[idx]
         emission = self.emission[src]
         rho = self._patch_rho(v, f, src) if self.texture_maps and len(f) != len(keep) else self.rho[src]

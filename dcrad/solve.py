@@ -268,7 +268,8 @@ class Solver:
         return idx[fits], counts[fits]
 
     def select(self):
-        """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2).
+        """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2,
+        share (k,): the part of each one's amount it shoots now, 1 unless capped by max_rays_per_shot).
 
         The top K come from the shooter pool (shooters.py: the same shooters as a
         full sort, at O(pool + touched rows) per batch).  While overshooting, every
@@ -289,9 +290,16 @@ class Solver:
             power = amounts * p.area[rows, None]
             sel, counts = self.rank(power, floor, ray_factor=st.ray_factor)
             idx, power, amounts = rows[sel], power[sel], amounts[sel]
+        # a shooter whose power needs more rays than one shot may have (max_rays_per_shot) shoots
+        # that many at the run's power per ray and keeps the rest unshot for later batches: shot
+        # whole, its rays carried more power than the density planned, and a lamp of two
+        # triangles lit a real office with 131k rays whatever the target (issue 26)
+        full = rowsum(np.abs(power)) / (self.power_per_ray * st.ray_factor)
+        share = np.where(full > counts, counts / np.maximum(full, 1e-300), 1.0)
+        power, amounts = power * share[:, None], amounts * share[:, None]
         # shoot neighbours after each other: coherent rays for Embree (shooters.spatial_order)
         order = spatial_order(p, idx)
-        return idx[order], counts[order], power[order], amounts[order]
+        return idx[order], counts[order], power[order], amounts[order], share[order]
 
     def candidates(self, k: int) -> np.ndarray:
         """Rows of the shooter pool's top ``k`` (shooters.py; the pool's priorities are rank's,
@@ -392,15 +400,16 @@ class Solver:
 
     def step(self) -> int:
         """Shoot one batch; return the number of rays traced (0 when nothing is unshot)."""
-        idx, counts, power, amounts = self.select()
+        idx, counts, power, amounts, share = self.select()
         if len(idx) == 0:
             return 0
         t0 = time.perf_counter()
-        batch = patch_rays(self.patches, idx, counts, power, self.rng, self.noise.shot_diff(idx, self.patches.area))
+        diff = self.noise.shot_diff(idx, self.patches.area) * share[:, None]
+        batch = patch_rays(self.patches, idx, counts, power, self.rng, diff)
         tally = self.fire(batch, t0)
         # Shooters give up what they shot (dB - amount: 0, or -rho*g when overshooting)
         self.release(idx, amounts)
-        self.noise.shot(idx)
+        self.noise.shot(idx, 1.0 - share)
         self.commit(batch, tally)
         return self.counted(len(idx), len(batch))
 
@@ -515,6 +524,18 @@ class Solver:
         # needs the direct light gathered, and the noise of shooting it is the noise of a far
         # denser run (the office: 1.2x the noise of shooting at 1.2e7 rays per power, which
         # took 30.5M rays to 2%; gathered and finished: 4.3M rays for 1.6%)
+        # ... unless the pilot measured the gather so noisy that matching shooting's noise would take
+        # more shadow rays than shooting the emitted power at the run's density takes rays: a lamp
+        # in a fixture (louvres, a trough) is seen partly by most receivers, and the plan kept a
+        # gather 13x noisier than shooting on a real office (issue 26): the light is shot instead
+        equal = shadow * ratio * ratio * len(receivers)
+        if plan is not None and preset is None and equal > cfg.rays_per_power:
+            self.choices.append(f"direct light shot, not gathered, and no final gather: the gather's {shadow} shadow "
+                                f"rays per receiving patch gave {ratio:.2f}x the noise of shooting; matching it would "
+                                f"take about {equal:.3g} shadow rays, more than the {cfg.rays_per_power:.3g} rays "
+                                f"shooting the emitted power once takes (its {gathered.rays} shadow rays are counted)")
+            self.final_rays = 0
+            return self.counted(0, gathered.rays)
         if plan is None and not ratio < GATHER_MARGIN:
             on = f"on a pilot of {len(pilot)} patches" if lights is None else "on every patch"
             self.choices.append(f"direct light shot, not gathered: {how} {shadow} shadow rays per patch gave "

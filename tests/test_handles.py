@@ -17,7 +17,7 @@ from dcrad.pipeline import prepare
 
 @pytest.fixture(scope="module")
 def cornell(tmp_path_factory):
-    _, p, _ = prepare(scenes.write_builtin("cornell", tmp_path_factory.mktemp("c")), 0.15)
+    _, p, _ = prepare(scenes.write_builtin("cornell", tmp_path_factory.mktemp("c")), 0.08)
     return p
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from dcrad.errors import ConfigError, SceneFormatError, SceneValueError
+from dcrad.mesh import AREA_SHARE, SLIVER_EDGES
 from dcrad.patches import triangle_areas
 from dcrad.scene import DEFAULT_RHO, gltf_header, load_scene
 
@@ -229,7 +230,17 @@ def test_patches_subdivide(tmp_path):
         p = s.patches(max_edge)
         tri = p.triangles
         edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
-        assert edges.max() <= max_edge * (1 + 1e-12)
+        # no element larger than the size (mesh.refine): small in area or short, and no long sliver
+        small = (triangle_areas(tri) <= AREA_SHARE * max_edge ** 2 * (1 + 1e-12)) | \
+            (edges.max(axis=1) <= max_edge * (1 + 1e-12))
+        assert small.all() and edges.max() <= SLIVER_EDGES * max_edge * (1 + 1e-12)
+        # none split that did not need it: a piece is at least a quarter of the area bound (bisection
+        # halves; the closure of hanging vertices halves once more)
+        assert triangle_areas(tri).min() >= 0.25 * 0.5 * AREA_SHARE * max_edge ** 2 or len(p) < 8
+        # no hanging vertex: no edge is shared by more than two pieces
+        und = np.sort(np.concatenate([p.faces[:, [0, 1]], p.faces[:, [1, 2]], p.faces[:, [2, 0]]]), axis=1)
+        _, count = np.unique(und, axis=0, return_counts=True)
+        assert count.max() <= 2
         valid_area = triangle_areas(s.vertices[s.faces[s.valid]]).sum()
         assert abs(p.area.sum() - valid_area) <= 1e-12 * valid_area
         assert set(p.source.tolist()) == set(np.flatnonzero(s.valid).tolist())

@@ -243,7 +243,7 @@ def test_tracer_from_shared_vertices_hits_what_the_triangle_soup_hits(tmp_path, 
     import scenes
     from dcrad.scene import load_scene
 
-    patches = load_scene(scenes.write_builtin("cornell", tmp_path)).patches(0.25)
+    patches = load_scene(scenes.write_builtin("cornell", tmp_path)).patches(0.1)
     rng = np.random.default_rng(5)
     rows = np.sort(rng.choice(len(patches), len(patches) * 2 // 3, replace=False))
     tri = patches.corners(rows)

@@ -1,0 +1,198 @@
+"""The solver's elements, chosen from the scene's light, not from the file's triangulation.
+
+A modeller's triangulation says nothing about how fast the light varies: a long wall is two
+triangles, a chair ten thousand slivers.  So the element size comes from the scene's own light
+scale, the mean free path of its rays (``light_scale``: cosine rays from random points of the
+surfaces, the mean distance to what they hit; in a closed convex room it is Cauchy's 4V/S),
+divided by ``PATHS_PER_ELEMENT``.  It is the same for a building of 400 rooms as for one room,
+and the same for a file triangulated finely or coarsely.
+
+Meshing (``refine``) only splits: a triangle larger than the element is bisected across its
+longest edge until it is not; triangles already smaller are kept whole (their neighbours of the
+same surface share their light through ``clusters``, which groups them, see scene.Scene.patches).
+Bisection, not trimesh's 4-way midpoint split, because a 4-way split of a 3 m sliver splits its
+1 cm edges too (a sliver into 256 patches); bisection halves only the long edge.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .patches import triangle_areas, triangle_normals
+
+__all__ = ["light_scale", "element_size", "refine", "estimate_elements", "mesh_note", "PATHS_PER_ELEMENT", "SCALE_RAYS"]
+
+#: element size = mean free path / PATHS_PER_ELEMENT.  The office's rooms (mean free path 2.2 m):
+#: 0.28 m, about the 0.37 m its median-edge rule gave; Cornell's box (0.35 m): 0.044 m
+PATHS_PER_ELEMENT = 6.0
+#: rays traced to measure the mean free path (its standard error is about 1/sqrt of this: 0.8%)
+SCALE_RAYS = 1 << 14
+#: a triangle is split while its area exceeds AREA_SHARE * size^2 (and its longest edge the size),
+#: or while its longest edge exceeds SLIVER_EDGES * size whatever its area (a long sliver still
+#: sees light vary along its length)
+AREA_SHARE = 0.5
+SLIVER_EDGES = 4.0
+
+
+def light_scale(vertices: np.ndarray, faces: np.ndarray, seed: int = 0) -> tuple[float, float]:
+    """(mean free path m, share of rays that hit something): cosine rays from area-sampled points
+    on both sides of the triangles, the mean distance to their first hit (misses left out: the
+    sky or the outside of a model are not a length of its rooms).  With no hit at all (a lone
+    plane), the box diagonal / 2."""
+    from .rays import Tracer  # noqa: PLC0415  embreex is imported on first use
+    from .sampling import cosine_hemisphere, onb, triangle_points  # noqa: PLC0415
+
+    tri = vertices[faces]
+    area = triangle_areas(tri)
+    lo, hi = tri.reshape(-1, 3).min(axis=0), tri.reshape(-1, 3).max(axis=0)
+    diag = float(np.linalg.norm(hi - lo))
+    if len(faces) == 0 or area.sum() <= 0:
+        return 0.0, 0.0
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(faces), SCALE_RAYS, p=area / area.sum())
+    normal = triangle_normals(tri[pick]) * np.where(rng.random(SCALE_RAYS) < 0.5, 1.0, -1.0)[:, None]
+    origin = triangle_points(tri[pick, 0], tri[pick, 1], tri[pick, 2], rng.random((SCALE_RAYS, 2)))
+    t, b = onb(normal)
+    local = cosine_hemisphere(rng.random((SCALE_RAYS, 2)))
+    dirs = local[:, :1] * t + local[:, 1:2] * b + local[:, 2:3] * normal
+    tracer = Tracer(None, vertices=vertices, faces=faces)
+    prim, dist = tracer.intersect(origin + 1e-6 * diag * normal, dirs)
+    hit = np.isfinite(dist) & (prim >= 0) & (dist > 1e-6 * diag)
+    if not hit.any():
+        return 0.5 * diag, 0.0
+    return float(dist[hit].mean()), float(hit.mean())
+
+
+def element_size(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, str]:
+    """The automatic element size (m) and the report's sentence on how it was found."""
+    mfp, seen = light_scale(vertices, faces)
+    if mfp <= 0:
+        return 0.0, "no surface with area: one element per triangle"
+    size = mfp / PATHS_PER_ELEMENT
+    return size, (f"element size {size:.3g} m: the rays' mean free path {mfp:.3g} m (measured with {SCALE_RAYS} "
+                  f"rays, {seen:.0%} of them hit a surface) / {PATHS_PER_ELEMENT:g}; larger triangles split, "
+                  f"smaller ones kept whole (mesh.py)")
+
+
+def _split_mask(tri: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """(split (m,) bool, longest edge index (m,)): which triangles ``refine`` bisects, and where
+    (edge k joins corners k and k+1)."""
+    edges = np.linalg.norm(np.roll(tri, -1, axis=1) - tri, axis=2)
+    k = edges.argmax(axis=1)
+    longest = edges[np.arange(len(tri)), k]
+    area = triangle_areas(tri)
+    split = (longest > size) & ((area > AREA_SHARE * size * size) | (longest > SLIVER_EDGES * size))
+    return split, k
+
+
+def refine(vertices: np.ndarray, faces: np.ndarray, size: float, max_levels: int = 40):
+    """Bisect triangles across their longest edge until none is larger than the element ``size``.
+
+    Returns (vertices (V,3) f8, faces (n,3) i8, index (n,) i8: the input face of each).  An edge
+    split by both of its triangles gets one midpoint (the pieces share it, as the renderer's
+    vertex colours need); winding is kept.  ``size`` <= 0: the input as it is.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    index = np.arange(len(faces), dtype=np.int64)
+    if not size > 0 or len(faces) == 0:
+        return vertices, faces, index
+    verts = [vertices]
+    n_verts = len(vertices)
+    done_f, done_i = [], []
+    keys = np.zeros(0, np.int64)  # edge keys (lo * n + hi) already split, sorted, and their midpoints
+    mids = np.zeros(0, np.int64)
+    for _ in range(max_levels):
+        all_v = np.concatenate(verts) if len(verts) > 1 else verts[0]
+        verts = [all_v]
+        split, k = _split_mask(all_v[faces], size)
+        done_f.append(faces[~split])
+        done_i.append(index[~split])
+        if not split.any():
+            break
+        f, kk, idx = faces[split], k[split], index[split]
+        rows = np.arange(len(f))
+        a, b, c = f[rows, kk], f[rows, (kk + 1) % 3], f[rows, (kk + 2) % 3]
+        lo_, hi_ = np.minimum(a, b), np.maximum(a, b)
+        key = lo_ * np.int64(1 << 31) + hi_  # vertex counts stay far below 2^31
+        uniq, inv = np.unique(key, return_inverse=True)
+        pos = np.searchsorted(keys, uniq)
+        known = (pos < len(keys)) & (keys[np.minimum(pos, len(keys) - 1)] == uniq) if len(keys) else \
+            np.zeros(len(uniq), bool)
+        mid_of = np.empty(len(uniq), np.int64)
+        mid_of[known] = mids[pos[known]]
+        fresh = np.flatnonzero(~known)
+        mid_of[fresh] = n_verts + np.arange(len(fresh))
+        first = np.zeros(len(uniq), np.int64)
+        first[inv] = np.arange(len(key))  # a triangle that splits each new edge: its corners give the midpoint
+        verts.append(0.5 * (all_v[a[first[fresh]]] + all_v[b[first[fresh]]]))
+        n_verts += len(fresh)
+        order = np.argsort(np.concatenate([keys, uniq[fresh]]), kind="stable")
+        keys = np.concatenate([keys, uniq[fresh]])[order]
+        mids = np.concatenate([mids, mid_of[fresh]])[order]
+        m = mid_of[inv]
+        faces = np.concatenate([np.stack([a, m, c], axis=1), np.stack([m, b, c], axis=1)])
+        index = np.concatenate([idx, idx])
+    else:  # pragma: no cover - 40 halvings of an edge: 1e12 elements, refused before meshing
+        done_f.append(faces)
+        done_i.append(index)
+    faces, index = _close(np.concatenate(done_f), np.concatenate(done_i), keys, mids)
+    order = np.argsort(index, kind="stable")  # patches of one input triangle together, in file order
+    return np.concatenate(verts), faces[order], index[order]
+
+
+def _edge_keys(faces: np.ndarray) -> np.ndarray:
+    """(m, 3) keys of each face's edges (edge k joins corners k and k+1), as ``refine`` keys them."""
+    a, b = faces, np.roll(faces, -1, axis=1)
+    return np.minimum(a, b) * np.int64(1 << 31) + np.maximum(a, b)
+
+
+def _close(faces: np.ndarray, index: np.ndarray, keys: np.ndarray, mids: np.ndarray):
+    """Split every face at the midpoints its neighbours put on its edges (no hanging vertices).
+
+    Without this a triangle next to a bisected one keeps the whole edge while the neighbour's
+    pieces meet at its midpoint: in float32 the two sides of the seam differ and a ray can slip
+    through the crack (the two-sided Cornell box lost 3e-7 W through its walls)."""
+    if not len(keys):
+        return faces, index
+    for _ in range(64):
+        ek = _edge_keys(faces)
+        pos = np.minimum(np.searchsorted(keys, ek), len(keys) - 1)
+        hang = keys[pos] == ek  # (m, 3): this edge has a midpoint
+        todo = np.flatnonzero(hang.any(axis=1))
+        if not len(todo):
+            break
+        f = faces[todo]
+        k = hang[todo].argmax(axis=1)
+        rows = np.arange(len(todo))
+        a, b, c = f[rows, k], f[rows, (k + 1) % 3], f[rows, (k + 2) % 3]
+        m = mids[pos[todo, k]]
+        keep = np.ones(len(faces), bool)
+        keep[todo] = False
+        faces = np.concatenate([faces[keep], np.stack([a, m, c], axis=1), np.stack([m, b, c], axis=1)])
+        index = np.concatenate([index[keep], index[todo], index[todo]])
+    return faces, index
+
+
+def estimate_elements(triangles: np.ndarray, size: float) -> int:
+    """About how many elements ``refine`` makes of (n,3,3) ``triangles``, before meshing (the memory
+    check): each split halves the area, so a triangle larger than the element becomes about
+    2^ceil(log2(area / (AREA_SHARE size^2))) of them; slivers by their length."""
+    if len(triangles) == 0 or not size > 0:
+        return len(triangles)
+    area = triangle_areas(triangles)
+    longest = np.linalg.norm(np.roll(triangles, -1, axis=1) - triangles, axis=2).max(axis=1)
+    by_area = np.where(longest > size, np.ceil(np.log2(np.maximum(area / (AREA_SHARE * size * size), 1.0))), 0)
+    by_length = np.ceil(np.log2(np.maximum(longest / (SLIVER_EDGES * size), 1.0)))
+    levels = np.minimum(np.maximum(by_area, by_length), 60)
+    return int(np.sum(2.0 ** levels))
+
+
+def mesh_note(size: float, how: str | None, source: np.ndarray, n_input: int) -> str:
+    """The report's line on the mesh: the size and how it was chosen (``how`` None: --patch-size),
+    how many input triangles were split and into how many elements, how many were kept whole."""
+    pieces = np.bincount(source, minlength=n_input)
+    split = int((pieces > 1).sum())
+    chosen = how if how is not None else f"element size {size:.4g} m (--patch-size)"
+    return (f"mesh: {chosen}; {int((pieces > 0).sum())} input triangles -> {len(source)} elements: {split} split "
+            f"into {int(pieces[pieces > 1].sum())}, {int((pieces == 1).sum())} kept whole")
