@@ -122,6 +122,9 @@ class Estimate:
     noise_refl: float  #: the noise part, over RMS(B - E)
     bias_refl: float  #: the unshot part, over RMS(B - E)
     method: str = METHOD
+    #: rms_refl of B per input triangle (radiosity.npz's B: the mean of its patches, at most the
+    #: elements' error); None where not tracked (divided and shared runs' books)
+    triangles_refl: float | None = None
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -199,10 +202,13 @@ class NoiseTally:
         self._sums = NoiseSums(rho2=(patches.rho ** 2 * patches.area[:, None]).sum(axis=0),
                                area=float(patches.total_area) if n else 0.0,
                                rho1=(patches.rho * patches.area[:, None]).sum(axis=0))
-        #: (n,) the input triangle and side of each patch: what a user reads B of (radiosity.npz's B)
-        self._reads = (2 * patches.source + patches.is_back) if n else np.zeros(0, np.int64)
-        #: (d2, b2, r2) per input triangle over per patch, from the last ``resync`` (1: not known)
+        #: (n,) the element each patch's B is read in (Patches.reads: its cluster, else itself), and
+        #: the same with input triangles for patches (radiosity.npz's B)
+        self._reads = patches.reads() if n else np.zeros(0, np.int64)
+        self._triangles = patches.reads(per_triangle=True) if n else np.zeros(0, np.int64)
+        #: (d2, b2, r2) per element, and per input triangle, over per patch, from the last ``resync``
         self.factors = (1.0, 1.0, 1.0)
+        self.triangle_factors = (1.0, 1.0, 1.0)
         self.resync(patches)
 
     # -- the per-batch hooks (Solver.step / Solver.commit) --------------------------
@@ -271,14 +277,19 @@ class NoiseTally:
         s.b2 = float((a * rowsum(b * b)).sum()) / 3.0
         s.r2 = float((a * rowsum(r * r)).sum()) / 3.0
         s.r1 = np.array([float((a * r[:, c]).sum()) for c in range(r.shape[1])])
-        self.factors = tuple(_read_share(self._reads, a, x, whole)  # type: ignore[assignment]
-                             for x, whole in ((self.diff, s.d2), (b, s.b2), (r, s.r2)))
+        pairs = ((self.diff, s.d2), (b, s.b2), (r, s.r2))
+        clustered = bool((patches.cluster >= 0).any())
+        self.factors = tuple(_read_share(self._reads, a, x, whole) if clustered else 1.0  # type: ignore[assignment]
+                             for x, whole in pairs)
+        self.triangle_factors = tuple(_read_share(self._triangles, a, x, whole)  # type: ignore[assignment]
+                                      for x, whole in pairs)
 
-    def sums(self) -> NoiseSums:
-        """The sums as a user reads B: per input triangle (its patches' area-weighted mean), by the
-        factors of the last resync (the increments between resyncs are the patches')."""
+    def sums(self, per_triangle: bool = False) -> NoiseSums:
+        """The sums of B as it is read: per element (a cluster's patches share one B, Patches.pool),
+        or ``per_triangle``, per input triangle (the area-weighted mean of its patches: radiosity.npz's
+        B), by the factors of the last resync (the increments between resyncs are the patches')."""
         s = self._sums
-        fd, fb, fr = self.factors
+        fd, fb, fr = self.triangle_factors if per_triangle else self.factors
         return NoiseSums(s.d2 * fd, s.b2 * fb, s.r2 * fr, s.rho2.copy(), s.area, s.r1.copy(), s.rho1.copy())
 
 
@@ -286,9 +297,9 @@ def _read_share(reads: np.ndarray, area: np.ndarray, x: np.ndarray, whole: float
     """sum_t A_t |mean_t x|^2 / sum_i A_i |x_i|^2 (channel mean): the share of a per-patch square sum
     that the input triangles' area-weighted means keep (1 when nothing is split, or no sum yet).
 
-    The error a user reads is of B per input triangle (radiosity.npz's B), where a triangle split
-    into many patches averages their noise: per patch, the estimate of office2 read 2.4x the error
-    measured per input triangle (issue 26)."""
+    A cluster's patches share one B, and B per input triangle is the mean of its patches: both
+    average the patches' noise (per patch, office2's estimate read 2.4x the error measured per
+    input triangle)."""
     if whole <= 0 or not len(reads):
         return 1.0
     group = np.bincount(reads, weights=area)

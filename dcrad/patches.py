@@ -86,6 +86,9 @@ class Patches:
                             the front ones); -1 for one-sided patches.  A ray
                             that hits a patch from behind lands on its twin
                             (shoot.trace)
+    cluster     (n,)   i8   small neighbours of one surface that share one B
+                            (mesh.clusters: their irradiance is pooled when
+                            read, ``pool``); -1 for a patch that stands alone
     ==========  ==========  ===================================================
     """
 
@@ -100,6 +103,7 @@ class Patches:
     radiosity: np.ndarray = None  # type: ignore[assignment]
     unshot: np.ndarray = None  # type: ignore[assignment]
     twin: np.ndarray = None  # type: ignore[assignment]
+    cluster: np.ndarray = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, np.float64)
@@ -114,18 +118,20 @@ class Patches:
         if self.unshot is None:
             self.unshot = self.emission.copy()
         self.twin = np.full(n, -1, np.int64) if self.twin is None else np.ascontiguousarray(self.twin, np.int64)
+        self.cluster = (np.full(n, -1, np.int64) if self.cluster is None
+                        else np.ascontiguousarray(self.cluster, np.int64))
 
     # -- as arrays (a worker's copy) ---------------------------------------------------
     def table_arrays(self) -> dict:
         """The table's own arrays (not B or dB): what ``from_table`` rebuilds it from."""
         return {"vertices": self.vertices, "faces": self.faces, "rho": self.rho, "emission": self.emission,
-                "source": self.source, "obj": self.obj, "twin": self.twin}
+                "source": self.source, "obj": self.obj, "twin": self.twin, "cluster": self.cluster}
 
     @classmethod
     def from_table(cls, arrays: dict, names: list, radiosity: np.ndarray | None = None,
                    unshot: np.ndarray | None = None) -> "Patches":
-        """The table of ``table_arrays`` (``twin`` optional), B and dB given or starting at E."""
-        given = {"radiosity": radiosity, "unshot": unshot, "twin": arrays.get("twin")}
+        """The table of ``table_arrays`` (``twin``, ``cluster`` optional), B and dB given or starting at E."""
+        given = {"radiosity": radiosity, "unshot": unshot, "twin": arrays.get("twin"), "cluster": arrays.get("cluster")}
         return cls(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
                    arrays["obj"], list(names), **{k: v for k, v in given.items() if v is not None})
 
@@ -242,7 +248,39 @@ class Patches:
             radiosity=self.radiosity[index].copy(),
             unshot=self.unshot[index].copy(),
             twin=remap_twin(self.twin, np.arange(len(self))[index]),
+            cluster=self.cluster[index],
         )
+
+    @property
+    def units(self) -> int:
+        """The solver's unknowns: patches that stand alone, and one per cluster (what the ray
+        density follows, accuracy.rays_for)."""
+        alone = int((self.cluster < 0).sum())
+        return alone + (len(np.unique(self.cluster[self.cluster >= 0])) if alone < len(self) else 0)
+
+    def reads(self, per_triangle: bool = False) -> np.ndarray:
+        """(n,) i8: the unit each patch's B is read in: its cluster, else the patch itself (an
+        element); ``per_triangle``: else its input triangle's side (radiosity.npz's B and B_back)."""
+        own = 2 * self.source + self.is_back if per_triangle else np.arange(len(self), dtype=np.int64)
+        base = int(own.max()) + 1 if len(own) else 0
+        return np.where(self.cluster >= 0, base + self.cluster, own)
+
+    def pool(self) -> None:
+        """Clustered patches share one B: the cluster's irradiance, sum A (B - E) / sum A rho per
+        channel (the reflected power is kept exactly), times each patch's rho, plus its E."""
+        rows = np.flatnonzero(self.cluster >= 0)
+        if not len(rows):
+            return
+        _, c = np.unique(self.cluster[rows], return_inverse=True)
+        a = self.area[rows]
+        b = self.radiosity[rows]
+        e = self.emission[rows]
+        rho = self.rho[rows]
+        for ch in range(3):
+            refl = np.bincount(c, weights=a * (b[:, ch] - e[:, ch]))
+            cap = np.bincount(c, weights=a * rho[:, ch])
+            h = np.divide(refl, cap, out=np.zeros_like(refl), where=cap > 0)
+            self.radiosity[rows, ch] = np.where(cap[c] > 0, e[:, ch] + rho[:, ch] * h[c], b[:, ch])
 
     @cached_property
     def is_back(self) -> np.ndarray:

@@ -381,7 +381,7 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
     ``patches`` holds the assembled B.  The report's ``divided`` section is in
     ``books.divided``; the coordinator adds its service figures to it.
     """
-    config = resolve(config, len(patches))  # the settings the run used (ray density, stop rule)
+    config = resolve(config, patches.units)  # the settings the run used (ray density, stop rule)
     states = run.states
     last = run.snapshots[-1]
     stats = Stats(shots=last.shots, rays=last.rays, batches=sum(s.batches for s in states),
@@ -450,8 +450,10 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     warnings = list(scene.warnings) + books.warnings()
     size = float(settings.get("patch_size_m") or 0.0)
     auto = scene.element_choice if scene.element_choice is not None and scene.element_choice[0] == size else None
-    fronts = books.patches.source[~books.patches.is_back]
-    books.choices.insert(0, mesh.mesh_note(size, auto[1] if auto else None, fronts, len(scene.faces)))
+    front = ~books.patches.is_back
+    books.choices.insert(0, mesh.mesh_note(size, auto[1] if auto else None, books.patches.source[front],
+                                           books.patches.cluster[front], len(scene.faces)))
+    books.patches.pool()  # clustered patches share one B (their estimate was read so: noise.py)
     sections: dict = {}
     outputs = write_outputs(out, scene, books.patches, width, height, sections,
                             float(settings.get("workplane_m") or 0.0), tracer=tracer, views=views, painter=painter)

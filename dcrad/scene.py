@@ -50,7 +50,7 @@ import numpy as np
 
 from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
-from .mesh import refine
+from .mesh import clusters, refine
 from .objfile import inside_folder, mtllib_files, parse_obj, read_mtl
 from .patches import Patches, triangle_areas, triangle_normals
 from .texture import read_texture, uv_at, uv_means
@@ -126,6 +126,8 @@ class Scene:
         keep = np.flatnonzero(self.valid)
         v, f, idx = refine(self.vertices, self.faces[keep], max_edge or 0.0)
         src = keep[idx]
+        whole = np.bincount(idx, minlength=len(keep)) == 1
+        group = clusters(self.vertices[self.faces[keep]], self.obj[keep], whole, max_edge or 0.0)[idx]
         emission = self.emission[src]
         rho = self._patch_rho(v, f, src) if self.texture_maps and len(f) != len(keep) else self.rho[src]
         twin = np.full(len(f), -1, np.int64)  # no back sides: what Patches fills in for None
@@ -137,12 +139,13 @@ class Scene:
             twin = np.full(n + len(back), -1, np.int64)
             twin[back], twin[n:] = n + np.arange(len(back)), back
             f = np.concatenate([f, f[back][:, [0, 2, 1]]])
+            group = np.concatenate([group, np.where(group[back] >= 0, group[back] + group.max() + 1, -1)])
             src = np.concatenate([src, src[back]])
             emission = np.concatenate([emission, np.zeros((len(back), 3))])
             rho = np.concatenate([rho, rho[back]])
         return Patches(
             vertices=v, faces=f, rho=rho, emission=emission,
-            source=src, obj=self.obj[src], names=list(self.names), twin=twin,
+            source=src, obj=self.obj[src], names=list(self.names), twin=twin, cluster=group,
         )
 
     def _patch_rho(self, v: np.ndarray, f: np.ndarray, src: np.ndarray) -> np.ndarray:

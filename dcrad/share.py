@@ -223,12 +223,12 @@ def run_replica(patches: Patches, config: SolverConfig, tracer: Tracer, direct: 
     """Replica ``index`` of k from the merged direct light, up to where the final gather would start
     (module doc, step 2).  ``patches`` is reset first (its B and dB are the replica's afterwards)."""
     patches.reset()
-    solver = Solver(patches, replica_config(config, k, index, len(patches)), tracer=tracer)
+    solver = Solver(patches, replica_config(config, k, index, patches.units), tracer=tracer)
     solver.preset_direct = direct
     solver.replicas, solver.shared_noise = k, shared_noise(patches, direct)
     solver.shoot_share = 1.0 / max(k, 1)
     solver.defer_final = True
-    job_plan = final_plan(resolve(config, len(patches)), len(patches))
+    job_plan = final_plan(resolve(config, patches.units), len(patches))
     solver.planned_final_rays = job_plan.final_rays if job_plan is not None else 0
     solver.run(should_stop=should_stop)
     st, est = solver.stats, solver.estimate()
@@ -378,7 +378,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     ``direct``, ``replicas`` and ``gather`` methods (the coordinator's, on workers).  Returns None
     when the lights make no exact form factors (the caller solves another way).  ``on_phase(name,
     elapsed s, rays so far, estimate or None)`` after each phase.  The result is left in ``patches``."""
-    cfg = resolve(config, len(patches))
+    cfg = resolve(config, patches.units)
     t0 = time.perf_counter()
     emission = patches.emission.copy()
     parts = work_shares(patches, k)  # the final gather's
@@ -477,7 +477,7 @@ def shared_books(run: SharedRun, patches: Patches, config: SolverConfig, timings
                  where: str = "in this process") -> tuple[RunBooks, dict]:
     """The books of a shared run for its report (``pipeline.finish_run``) and the report's
     ``shared`` section."""
-    cfg = resolve(config, len(patches))
+    cfg = resolve(config, patches.units)
     rep = run.replicas
     back = np.sum([r.back_by_obj for r in rep], axis=0) / len(rep)
     stiff = next((r.stiff for r in rep if r.stiff is not None), None)

@@ -140,7 +140,7 @@ class Solver:
     def __init__(self, patches: Patches, config: SolverConfig | None = None, tracer: Tracer | None = None):
         self.patches = patches
         #: settings with the automatic ones filled in (accuracy.resolve: ray density, stop rule)
-        self.config = resolve(config or SolverConfig(), len(patches))
+        self.config = resolve(config or SolverConfig(), patches.units)
         self.tracer = tracer if tracer is not None else Tracer.mesh(patches)
         self.rng = np.random.default_rng(self.config.seed)
         self.ledger = Ledger(emitted=patches.emitted_power.copy())
@@ -715,7 +715,10 @@ class Solver:
     def estimate(self) -> Estimate:
         """The estimated RMS error of B now: noise and unshot bias (noise.py); O(1)."""
         p = self.patches
-        return combine(self.noise.sums(), bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho))
+        ambient = bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho)
+        est = combine(self.noise.sums(), ambient)
+        est.triangles_refl = finite(combine(self.noise.sums(per_triangle=True), ambient).rms_refl)
+        return est
 
     def target_error(self, est: Estimate | None = None) -> float:
         """The error the accuracy target is held to, over RMS(B - E): the estimate's, or for a shared

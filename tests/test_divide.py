@@ -339,7 +339,7 @@ def test_a_divided_run_on_its_noise_floor_says_so(tmp_path):
     and the report says what would lower it (it was "stalled", which reads as a fault)."""
     from dcrad.pipeline import divided_books
 
-    _, p, _ = prepare(scenes.write_builtin("cornell", tmp_path), 0.024)
+    _, p, _ = prepare(scenes.write_builtin("cornell", tmp_path), 0.015)
     cfg = SolverConfig(accuracy=0.03, seed=1)
     divide = DivideConfig(subscenes=4)
     run, subs, boundaries, part = solve_divided(p, cfg, divide)

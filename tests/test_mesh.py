@@ -108,9 +108,14 @@ def test_a_room_with_millimetre_furniture_is_meshed_by_its_rooms(tmp_path):
     area = float(patches.total_area)
     assert len(patches) <= 3 * max(len(scene.faces), area / used ** 2)
     cushion = patches.obj == scene.names.index(next(n for n in scene.names if n.startswith("cushion")))
-    assert cushion.sum() == len(cf)  # kept whole, one element per triangle
+    assert cushion.sum() == len(cf)  # kept whole, one patch per triangle ...
+    groups = np.unique(patches.cluster[cushion])
+    assert (groups >= 0).all() and len(groups) <= 4  # ... grouped by the cells of the size it spans
+    assert patches.units == (patches.cluster < 0).sum() + len(groups)  # the unknowns: the room's, and a few
     solver = solve_to_accuracy(patches, SolverConfig(accuracy=0.1, seed=1, max_rays=3_000_000))
-    assert solver.ledger.closure() < 1e-9 and patches.radiosity[cushion].mean() > 0
+    assert solver.ledger.closure() < 1e-9
+    patches.pool()
+    assert len(np.unique(patches.radiosity[cushion], axis=0)) <= len(groups)  # a cluster shares one B
 
 
 def test_refine_keeps_area_orientation_and_bounds_the_elements():

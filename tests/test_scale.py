@@ -86,7 +86,7 @@ def test_sparse_tally_equals_a_dense_scatter(tmp_path):
     """trace's compact received/hit against np.add.at of the same rays into an (n,3) table."""
     p = cornell(tmp_path)
     s = Solver(p, SolverConfig(seed=4))
-    idx, counts, power, _ = s.select()
+    idx, counts, power, _, _ = s.select()
     batch = patch_rays(p, idx, counts, power, np.random.default_rng(5))
     tally = trace(s.tracer, batch, p)
     prim, _ = s.tracer.intersect(batch.origins, batch.dirs)
