@@ -1,9 +1,10 @@
 """The real models of ../shared/models solved at defaults, as a new user runs them (issue 26).
 
 Prints, per model: input triangles, elements, element size, rays, solve and total seconds, the
-estimated error of the reflected light per input triangle; with --reference, also the error
-measured per input triangle and per surface (lux) against a converged solution of the same mesh
-(another seed, --accuracy 0.006).  No assertions.  In one process (--workers 0) unless --workers.
+estimated error of the reflected light per element and per input triangle; with --reference, also
+the error measured per input triangle and per object (irradiance) against a converged solution of
+the same mesh with no clusters (another seed, --ref-accuracy, in this process: the clusters' own
+bias is measured too).  No assertions.  In one process (--workers 0) unless --workers.
 
 Run: .venv/bin/python bench/bench_corpus.py [--models office2,classroom] [--reference]
 """
@@ -22,6 +23,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT.parent / "shared" / "models"
+sys.path.insert(0, str(ROOT))
 
 
 def solve(model: Path, out: Path, *extra: str) -> tuple[dict, float]:
@@ -33,46 +35,75 @@ def solve(model: Path, out: Path, *extra: str) -> tuple[dict, float]:
     return json.loads((out / "report.json").read_text()), time.perf_counter() - t0
 
 
-def measured(run: Path, ref: Path) -> tuple[float, float]:
+def reference(model: Path, size: float, accuracy: float, scale: float = 1.0,
+              up: str | None = None) -> tuple[np.ndarray, object, object]:
+    """B per input triangle of a converged unclustered solution: (B (T,3), scene, patches)."""
+    from dcrad.config import SolverConfig
+    from dcrad.export import input_triangle_radiosity
+    from dcrad.passes import solve_to_accuracy
+    from dcrad.pipeline import prepare
+
+    scene, patches, _ = prepare(model, size, scale=scale, up=up)
+    patches.cluster[:] = -1  # every triangle its own unknown: the truth the clusters are measured against
+    solve_to_accuracy(patches, SolverConfig(accuracy=accuracy, seed=11))
+    return input_triangle_radiosity(patches, len(scene.faces))[0], scene, patches
+
+
+def measured(run: Path, ref_b: np.ndarray, scene, patches) -> tuple[float, float]:
     """(RMS error of B per input triangle over RMS(B* - E), area-weighted RMS relative error of the
-    surfaces' average lux) of ``run`` against ``ref``."""
-    a, b = np.load(run / "radiosity.npz"), np.load(ref / "radiosity.npz")
-    n = len(b["B"])
-    area = np.bincount(b["patch_source"], weights=b["patch_area"], minlength=n)
-    e = np.stack([np.bincount(b["patch_source"], weights=b["patch_area"] * b["patch_emission"][:, c], minlength=n)
-                  for c in range(3)], axis=1) / np.maximum(area, 1e-300)[:, None]
-    v = a["valid"] & b["valid"]
-    w = area[v, None]
-    err = np.sqrt((w * (a["B"][v] - b["B"][v]) ** 2).sum() / (w * (b["B"][v] - e[v]) ** 2).sum())
-    sa = {s["name"]: s["E_avg_lux"] for s in json.loads((run / "report.json").read_text())["photometry"]["surfaces"]}
-    sb = json.loads((ref / "report.json").read_text())["photometry"]["surfaces"]
-    rel = [((sa[s["name"]] - s["E_avg_lux"]) / s["E_avg_lux"], s["area_m2"]) for s in sb
-           if s["name"] in sa and s["E_avg_lux"] > 0]
-    x, wt = np.array(rel).T if rel else (np.zeros(1), np.ones(1))
-    return float(err), float(np.sqrt((wt * x * x).sum() / wt.sum()))
+    objects' mean irradiance) of ``run`` against the reference."""
+    from dcrad.patches import triangle_areas
+
+    a = np.load(run / "radiosity.npz")
+    v = a["valid"] & scene.valid
+    area = triangle_areas(scene.vertices[scene.faces])[v]
+    e = scene.emission[v]
+    w = area[:, None]
+    err = np.sqrt((w * (a["B"][v] - ref_b[v]) ** 2).sum() / (w * (ref_b[v] - e) ** 2).sum())
+    rho = scene.rho[v].mean(axis=1)
+    lit = rho > 0.01
+    obj = scene.obj[v][lit]
+    h_run = np.bincount(obj, weights=(area * (a["B"][v] - e).mean(axis=1) / np.maximum(rho, 1e-9))[lit])
+    h_ref = np.bincount(obj, weights=(area * (ref_b[v] - e).mean(axis=1) / np.maximum(rho, 1e-9))[lit])
+    wt = np.bincount(obj, weights=area[lit])
+    ok = h_ref > 0
+    x = (h_run[ok] - h_ref[ok]) / h_ref[ok]
+    return float(err), float(np.sqrt((wt[ok] * x * x).sum() / wt[ok].sum()))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", default="office2,classroom,office3,icecream_store")
     ap.add_argument("--workers", default="0")
+    ap.add_argument("--generated", default="", help="also a built-in scene as another tool would write it, Z-up, "
+                    "in millimetres, every face split into 16 (e.g. office:rows=2,cols=5,seed=9)")
     ap.add_argument("--reference", action="store_true", help="also measure against a converged solution")
+    ap.add_argument("--ref-accuracy", type=float, default=0.005, help="the reference's accuracy target")
     args = ap.parse_args()
-    print(f"bench_corpus: defaults, --workers {args.workers}; error = estimated / measured RMS of B - E per input "
-          f"triangle")
+    print(f"bench_corpus: defaults, --workers {args.workers}; errors: RMS of B - B* over RMS(B* - E)")
     with tempfile.TemporaryDirectory() as tmp:
-        for name in filter(None, args.models.split(",")):
-            model = MODELS / name / "scene.obj"
-            rep, wall = solve(model, Path(tmp) / name, "--workers", args.workers)
+        todo = [(name, MODELS / name / "scene.obj", ()) for name in filter(None, args.models.split(","))]
+        if args.generated:
+            from dcrad.pipeline import resolve_scene
+            from scenes.variants import variant
+
+            path = variant(resolve_scene(args.generated, Path(tmp) / "gen"), Path(tmp) / "gen-z", up="z",
+                           split=2, scale=1000.0)
+            todo.append((args.generated.replace(":", "-"), path, ("--scale", "0.001")))
+        for name, model, flags in todo:
+            rep, wall = solve(model, Path(tmp) / name, "--workers", args.workers, *flags)
             line = (f"{name:15s} {rep['scene']['input_triangles']:7d} triangles -> {rep['scene']['patches']:7d} "
                     f"elements at {rep['settings']['patch_size_m']:.3f} m; {rep['stats']['rays'] / 1e6:6.1f}M rays, "
                     f"solve {rep['timings']['solve_s']:5.1f} s, all {wall:5.1f} s; est. {rep['error']['rms_refl']:.2%}")
+            tri = rep["error"].get("triangles_refl")
+            line += f" per element, {tri:.2%} per triangle" if tri is not None else ""
             if args.reference:
-                ref, _ = solve(model, Path(tmp) / (name + "-ref"), "--workers", "0", "--seed", "11",
-                               "--accuracy", "0.006", "--patch-size", repr(rep["settings"]["patch_size_m"]))
-                err, lux = measured(Path(tmp) / name, Path(tmp) / (name + "-ref"))
-                line += (f", measured {err:.2%} (reference est. {ref['error']['rms_refl']:.2%}); "
-                         f"surface lux {lux:.2%}")
+                t0 = time.perf_counter()
+                ref_b, scene, patches = reference(model, rep["settings"]["patch_size_m"], args.ref_accuracy,
+                                                  rep["settings"]["scale"], rep["settings"]["up"])
+                err, obj = measured(Path(tmp) / name, ref_b, scene, patches)
+                line += (f"; measured {err:.2%} per triangle, objects' irradiance {obj:.2%} (reference: "
+                         f"{time.perf_counter() - t0:.0f} s)")
             print(line, flush=True)
 
 

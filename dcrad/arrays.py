@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["colsum", "put_rows", "rowsum", "take_rows"]
+__all__ = ["colsum", "put_rows", "rowsum", "take_rows", "ray_runs"]
 
 
 def colsum(a: np.ndarray) -> np.ndarray:
@@ -59,3 +59,14 @@ def put_rows(a: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
         np.put(a.view(row).reshape(-1), rows, v.view(row).reshape(-1))
     else:
         a[rows] = values
+
+
+def ray_runs(counts: np.ndarray, limit: int):
+    """Yield (lo, hi): consecutive runs of entries whose ``counts`` (rays each) sum to at most
+    ``limit`` (one entry at least), so that a batch of rays stays within memory whatever the counts."""
+    ends = np.cumsum(counts)
+    lo = 0
+    while lo < len(counts):
+        hi = max(int(np.searchsorted(ends, (ends[lo - 1] if lo else 0) + limit, side="right")), lo + 1)
+        yield lo, hi
+        lo = hi

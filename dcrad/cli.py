@@ -253,7 +253,9 @@ def _summary(report: dict, out: Path) -> None:
     err = report.get("error")
     if err:
         text = error_text(err["rms_refl"], err["noise_refl"], err["bias_refl"], report["settings"].get("accuracy", 0.0))
-        print(f"dcrad: {text}, {100 * (err['rms_norm'] or 0.0):.2f}% of RMS(B) (estimated, {err['rms']:.3g} W/m^2)")
+        per_triangle = f", {100 * err['triangles_refl']:.2f}% per input triangle" if err.get("triangles_refl") else ""
+        print(f"dcrad: {text}{per_triangle}, {100 * (err['rms_norm'] or 0.0):.2f}% of RMS(B) "
+              f"(estimated, {err['rms']:.3g} W/m^2)")
     print(f"dcrad: wrote {', '.join(report['outputs'].values())}, report.json in {out}")
 
 

@@ -56,6 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .arrays import ray_runs
 from .lights import Lights, form_factors, light_polygons
 from .patches import Patches
 from .rays import Tracer
@@ -626,10 +627,7 @@ def _visibility(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.n
     key = np.concatenate([[0.0], np.cumsum(patches.area[emitters[order]] / lights.area[lights.of_emitter[order]])])
     para = lights.parallelogram if lights.corner is not None and lights.edges is not None else None
     out = np.zeros((4, len(counts)))
-    ends = np.cumsum(counts)
-    lo = 0
-    while lo < len(counts):
-        hi = max(int(np.searchsorted(ends, (ends[lo - 1] if lo else 0) + batch_rays, side="right")), lo + 1)
+    for lo, hi in ray_runs(counts, batch_rays):
         c = counts[lo:hi]
         m = int(c.sum())
         if m:
@@ -688,7 +686,6 @@ def _visibility(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.n
             at = local[ok]
             for row, wgt in enumerate((geom * visible, geom, visible.astype(np.float64), None)):
                 out[row, lo:hi] += np.bincount(at, weights=wgt, minlength=hi - lo)
-        lo = hi
     return out[0], out[1], out[2], out[3]
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from .patches import Patches
 
-__all__ = ["Lights", "light_polygons", "polygon_form_factor", "form_factors", "MAX_LOOP_VERTICES"]
+__all__ = ["Lights", "light_polygons", "triangle_lights", "polygon_form_factor", "form_factors", "MAX_LOOP_VERTICES"]
 
 #: outline vertices of all lights above which no polygons are built (the sampled gather is used)
 MAX_LOOP_VERTICES = 20_000
@@ -143,6 +143,19 @@ def light_polygons(patches: Patches, emitters: np.ndarray, power: np.ndarray) ->
     lights = Lights(padded, np.asarray(loop_light, np.int64), np.asarray(normals), exitance[first],
                     np.bincount(of_emitter, weights=area, minlength=len(normals)), of_emitter)
     _parallelograms(lights, loops)
+    return lights
+
+
+def triangle_lights(patches: Patches, emitters: np.ndarray, power: np.ndarray) -> Lights:
+    """Every emitter (e,) shooting ``power`` (e,3) W a light of its own (its triangle): the lights
+    when ``light_polygons`` gives up (past MAX_LOOP_VERTICES), still exact per triangle."""
+    emitters = np.asarray(emitters, np.int64)
+    area = patches.area[emitters]
+    exitance = power / np.where(area > 0, area, 1.0)[:, None]
+    n = len(emitters)
+    lights = Lights(patches.corners(emitters).copy(), np.arange(n, dtype=np.int64), patches.normal[emitters].copy(),
+                    exitance, area.copy(), np.arange(n, dtype=np.int64))
+    lights.parallelogram, lights.corner, lights.edges = np.zeros(n, bool), np.zeros((n, 3)), np.zeros((n, 2, 3))
     return lights
 
 

@@ -355,7 +355,8 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
         section = {
             "efficacy_lm_per_W": photometry.EFFICACY, "Y_weights_rgb": photometry.Y_WEIGHTS.tolist(),
             "method": "E = 179 lm/W x Y(H), H = (B - E)/rho per channel; channels with rho < "
-                      f"{photometry.RHO_GATHER:g} gathered with {photometry.GATHER_RAYS} rays from the solution; "
+                      f"{photometry.RHO_GATHER:g}: the emitters' light from exact form factors x shadow-ray "
+                      f"visibility, the reflected light gathered with {photometry.GATHER_RAYS} rays reading B - E; "
                       "L = 179 x Y(B) / pi",
             "gathered_patches": int(gathered.sum()),
             "legend_max_lux": pictures["legend_max_lux"],
@@ -450,11 +451,15 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     warnings = list(scene.warnings) + books.warnings()
     size = float(settings.get("patch_size_m") or 0.0)
     auto = scene.element_choice if scene.element_choice is not None and scene.element_choice[0] == size else None
-    front = ~books.patches.is_back
-    books.choices.insert(0, mesh.mesh_note(size, auto[1] if auto else None, books.patches.source[front],
-                                           books.patches.cluster[front], len(scene.faces)))
-    books.patches.pool()  # clustered patches share one B (their estimate was read so: noise.py)
-    sections: dict = {}
+    p = books.patches
+    front = ~p.is_back
+    books.choices.insert(0, mesh.mesh_note(size, auto[1] if auto else None, p.source[front], p.cluster[front],
+                                           len(scene.faces)))
+    p.pool()  # clustered patches share one B (their estimate was read so: noise.py)
+    sections: dict = {"mesh": {"element_size_m": size, "automatic": auto is not None, "elements": len(p),
+                               "units": p.units,
+                               "objects": mesh.mesh_table(p.names, p.obj[front], p.source[front], p.cluster[front],
+                                                          len(scene.faces), scene.obj)}}
     outputs = write_outputs(out, scene, books.patches, width, height, sections,
                             float(settings.get("workplane_m") or 0.0), tracer=tracer, views=views, painter=painter)
     books.timings["outputs_s"] = time.perf_counter() - t0

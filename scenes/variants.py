@@ -21,6 +21,7 @@ from dcrad.scene import UP_AXES
 
 __all__ = ["variant", "CHECKER_LINEAR", "write_checker"]
 
+
 #: the two linear values of the checker; sRGB-encoded into the PNG
 CHECKER_LINEAR = (0.6, 1.0)
 
@@ -46,13 +47,19 @@ def write_checker(path, lo: float, hi: float, n: int = 4) -> None:
 
 
 def variant(src, folder, up: str = "z", flip: float = 0.0, texture: bool = False, seed: int = 0,
-            stem: str | None = None) -> pathlib.Path:
+            stem: str | None = None, split: int = 0, scale: float = 1.0) -> pathlib.Path:
     """Write a transformed copy of OBJ ``src`` (and its MTL) into ``folder``; return the OBJ path.
 
     up      : the copy's up axis ("y" keeps the coordinates)
     flip    : fraction of faces whose winding is reversed (seeded); emitters keep theirs
     texture : add ``map_Kd checker.png`` (see CHECKER_LINEAR) after every material's Kd
+    split   : rounds of midpoint 4-splits of every face first (2: each face into 16, in file
+              order: face i of the source becomes faces 16 i .. 16 i + 15), as finely triangulating
+              exporters write; polygons are fanned first
+    scale   : coordinates multiplied by it (1000: millimetres)
     """
+    if split or scale != 1.0:
+        src = _refined(pathlib.Path(src), pathlib.Path(folder) / "_split", split, scale)
     src = pathlib.Path(src)
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -107,3 +114,31 @@ def variant(src, folder, up: str = "z", flip: float = 0.0, texture: bool = False
         mtl = out
     (folder / f"{stem}.mtl").write_text("\n".join(mtl) + "\n")
     return folder / f"{stem}.obj"
+
+
+def _refined(src: pathlib.Path, folder: pathlib.Path, rounds: int, scale: float) -> pathlib.Path:
+    """``src`` with every face fanned into triangles, each split by ``rounds`` of midpoint 4-splits
+    and every coordinate times ``scale``, written (with its MTL) into ``folder``."""
+    import trimesh  # noqa: PLC0415
+
+    folder.mkdir(parents=True, exist_ok=True)
+    lines = src.read_text().splitlines()
+    verts = np.array([[float(x) for x in ln.split()[1:4]] for ln in lines if ln.startswith("v ")]) * scale
+    out, new_v = [], []
+    for ln in lines:
+        if ln.startswith("v "):
+            continue
+        if not ln.startswith("f "):
+            out.append(ln)
+            continue
+        idx = [int(t.split("/")[0]) - 1 for t in ln.split()[1:]]
+        for k in range(1, len(idx) - 1):
+            v, f = verts[[idx[0], idx[k], idx[k + 1]]], np.array([[0, 1, 2]])
+            for _ in range(rounds):
+                v, f = trimesh.remesh.subdivide(v, f)
+            base = len(new_v)
+            new_v.extend(np.asarray(v).tolist())
+            out.extend(f"f {a + base + 1} {b + base + 1} {c + base + 1}" for a, b, c in f)
+    (folder / src.name).write_text("\n".join([f"v {x!r} {y!r} {z!r}" for x, y, z in new_v] + out) + "\n")
+    (folder / f"{src.stem}.mtl").write_text((src.parent / f"{src.stem}.mtl").read_text())
+    return folder / src.name

@@ -132,7 +132,7 @@ def test_form_factors_against_the_closed_form_of_a_parallel_rectangle():
 @pytest.fixture(scope="module")
 def office(tmp_path_factory):
     """The 2x2 office (lamps of four rooms, doorways), its lights, receivers and their pairs."""
-    _, p, _ = prepare(resolve_scene("office:rows=2,cols=2", tmp_path_factory.mktemp("office")), 0.3)
+    _, p, _ = prepare(resolve_scene("office:rows=2,cols=2", tmp_path_factory.mktemp("office")), 0.2)
     em = np.flatnonzero(p.emission.any(axis=1))
     power = p.emission[em] * p.area[em, None]
     lights = light_polygons(p, em, power)

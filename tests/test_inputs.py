@@ -227,9 +227,9 @@ def test_time_limit_holds_inside_a_barrier(tmp_path, cluster):
     ends it after the batch that passes the deadline, in process and on a worker (the
     deadline travels in the barrier plan).  Before: the limit was checked at barriers only."""
     path = scenes.write_builtin("furnace", tmp_path / "furnace", rho=0.99)
-    report = solve_to(path, tmp_path / "out", SolverConfig(tol=1e-12, time_limit=1.0),
+    report = solve_to(path, tmp_path / "out", SolverConfig(tol=1e-12, time_limit=1.0), patch_size=0.04,
                       divide=DivideConfig(subscenes=2, iterations=2000, mode="binned"))
-    job = submit(cluster.address, path.parent, path.name, {"tol": 1e-12, "time_limit": 1.0},
+    job = submit(cluster.address, path.parent, path.name, {"tol": 1e-12, "time_limit": 1.0, "patch_size": 0.04},
                  {"subscenes": 2, "iterations": 2000, "mode": "binned"})
     final = watch(cluster.address, job.job_id)[-1]
     assert final.job.state == "done", final.job.error

@@ -14,34 +14,7 @@ from dcrad.passes import solve_to_accuracy
 from dcrad.patches import triangle_areas
 from dcrad.pipeline import default_patch_size, prepare
 from dcrad.scene import load_scene
-
-
-def _split16(src, dst):
-    """The OBJ at ``src`` with every face split into 16 (two rounds of midpoint 4-splits), written
-    to ``dst`` with the same materials; returns, per new face, the face of ``src`` it came from."""
-    lines = src.read_text().splitlines()
-    verts = [list(map(float, ln.split()[1:4])) for ln in lines if ln.startswith("v ")]
-    out, parent, v_out, n_face = [], [], [], 0
-    for ln in lines:
-        if ln.startswith("v "):
-            continue
-        if not ln.startswith("f "):
-            out.append(ln)
-            continue
-        idx = [int(t.split("/")[0]) - 1 for t in ln.split()[1:]]
-        for k in range(1, len(idx) - 1):  # fan the polygon, as the loader does
-            tri = np.array([verts[idx[0]], verts[idx[k]], verts[idx[k + 1]]])
-            v, f = trimesh.remesh.subdivide(tri, np.array([[0, 1, 2]]))
-            v, f = trimesh.remesh.subdivide(v, f)
-            base = len(v_out)
-            v_out.extend(v.tolist())
-            out.extend(f"f {a + base + 1} {b + base + 1} {c + base + 1}" for a, b, c in f)
-            parent.extend([n_face] * len(f))
-            n_face += 1
-    dst.write_text("\n".join([f"v {x!r} {y!r} {z!r}" for x, y, z in v_out] + out) + "\n")
-    for mtl in src.parent.glob("*.mtl"):
-        (dst.parent / mtl.name).write_text(mtl.read_text())
-    return np.array(parent)
+from scenes.variants import variant
 
 
 def test_a_finely_triangulated_copy_solves_like_the_coarse_file(tmp_path):
@@ -49,9 +22,7 @@ def test_a_finely_triangulated_copy_solves_like_the_coarse_file(tmp_path):
     light, not the edges), about the same elements and rays, and the same B per original
     triangle within the two runs' estimated errors (3 sigma of their combined estimate)."""
     coarse = scenes.write_builtin("cornell", tmp_path / "coarse")
-    fine = tmp_path / "fine" / coarse.name
-    fine.parent.mkdir()
-    parent = _split16(coarse, fine)
+    fine = variant(coarse, tmp_path / "fine", up="y", split=2)
     runs = []
     for path in (coarse, fine):
         scene, patches, size = prepare(path)
@@ -60,6 +31,7 @@ def test_a_finely_triangulated_copy_solves_like_the_coarse_file(tmp_path):
         runs.append((scene, patches, size, solver, b, valid))
     (sc, pc, size_c, solver_c, bc, _), (sf, pf, size_f, solver_f, bf, vf) = runs
     assert len(sf.faces) == 16 * len(sc.faces)
+    parent = np.arange(len(sf.faces)) // 16  # the split keeps the file's order
     assert size_f == pytest.approx(size_c, rel=0.05)
     assert len(pf) == pytest.approx(len(pc), rel=0.25)
     assert solver_f.stats.rays == pytest.approx(solver_c.stats.rays, rel=0.5)
