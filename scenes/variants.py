@@ -124,7 +124,8 @@ def _refined(src: pathlib.Path, folder: pathlib.Path, rounds: int, scale: float)
     folder.mkdir(parents=True, exist_ok=True)
     lines = src.read_text().splitlines()
     verts = np.array([[float(x) for x in ln.split()[1:4]] for ln in lines if ln.startswith("v ")]) * scale
-    out, new_v = [], []
+    out: list[str] = []
+    new_v: list[list[float]] = []
     for ln in lines:
         if ln.startswith("v "):
             continue
