@@ -16,6 +16,7 @@ import pathlib
 from collections.abc import Callable
 from typing import NamedTuple
 
+from .cie import cie_room
 from .cornell import cornell_box
 from .furnace import furnace_box, furnace_expected
 from .office import office_floor
@@ -29,6 +30,7 @@ __all__ = [
     "office_floor",
     "furnace_box",
     "furnace_expected",
+    "cie_room",
 ]
 
 
@@ -47,6 +49,10 @@ BUILTIN: dict[str, Builtin] = {
     "office": Builtin(
         office_floor,
         "office storey: rows x cols rooms joined by doors, seeded lights and furniture, closed",
+    ),
+    "cie_room": Builtin(
+        cie_room,
+        "CIE 171:2006 case 5.3 layout: 4 x 4 x 3 m black room, 1 x 1 m ceiling panel, floor and a wall gridded",
     ),
     "furnace": Builtin(
         furnace_box,
