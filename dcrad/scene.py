@@ -128,7 +128,7 @@ class Scene:
         src = keep[idx]
         whole = np.bincount(idx, minlength=len(keep)) == 1
         group = clusters(self.vertices[self.faces[keep]], self.obj[keep], whole, max_edge or 0.0,
-                         self.emission[keep].any(axis=1))[idx]
+                         np.asarray(self.emission[keep].any(axis=1)))[idx]
         emission = self.emission[src]
         rho = self._patch_rho(v, f, src) if self.texture_maps and len(f) != len(keep) else self.rho[src]
         twin = np.full(len(f), -1, np.int64)  # no back sides: what Patches fills in for None
