@@ -62,11 +62,16 @@ def put_rows(a: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
 
 
 def ray_runs(counts: np.ndarray, limit: int):
-    """Yield (lo, hi): consecutive runs of entries whose ``counts`` (rays each) sum to at most
-    ``limit`` (one entry at least), so that a batch of rays stays within memory whatever the counts."""
+    """Yield (lo, hi, owner, index): consecutive runs of entries whose ``counts`` (rays each) sum to
+    at most ``limit`` (one entry at least), so that a batch of rays stays within memory whatever the
+    counts; per ray of the run, its entry (``owner``, 0 .. hi - lo - 1) and its number among that
+    entry's rays (``index``).  Runs without rays are skipped."""
     ends = np.cumsum(counts)
     lo = 0
     while lo < len(counts):
         hi = max(int(np.searchsorted(ends, (ends[lo - 1] if lo else 0) + limit, side="right")), lo + 1)
-        yield lo, hi
+        c = counts[lo:hi]
+        m = int(c.sum())
+        if m:
+            yield lo, hi, np.repeat(np.arange(hi - lo), c), np.arange(m) - np.repeat(np.cumsum(c) - c, c)
         lo = hi

@@ -627,65 +627,61 @@ def _visibility(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.n
     key = np.concatenate([[0.0], np.cumsum(patches.area[emitters[order]] / lights.area[lights.of_emitter[order]])])
     para = lights.parallelogram if lights.corner is not None and lights.edges is not None else None
     out = np.zeros((4, len(counts)))
-    for lo, hi in ray_runs(counts, batch_rays):
+    for lo, hi, local, index in ray_runs(counts, batch_rays):
         c = counts[lo:hi]
-        m = int(c.sum())
-        if m:
-            # per component on (m,) rows: the lattice (sampling.lattice's arithmetic, one dimension
-            # at a time), the receiver's corners per entry, then each ray's points
-            start = np.cumsum(c) - c
-            index = np.arange(m) - np.repeat(start, c)
-            shift = rng.random((len(c), 5))
-            u = []
-            for dim in range(5):
-                ud = (index + 0.5) * alpha[dim] + np.repeat(shift[:, dim], c)
-                ud -= np.floor(ud)
-                u.append(ud)
-            local = np.repeat(np.arange(len(c)), c)  # entry - lo of each ray
-            sq = np.sqrt(u[0])
-            b1, b2 = sq * (1.0 - u[1]), sq * u[1]
-            fr = patches.faces[rec[lo:hi]]
-            nrm = patches.normal[rec[lo:hi]]
-            x, nx = [], []
+        m = len(index)
+        # per component on (m,) rows: the lattice (sampling.lattice's arithmetic, one dimension
+        # at a time), the receiver's corners per entry, then each ray's points
+        shift = rng.random((len(c), 5))
+        u = []
+        for dim in range(5):
+            ud = (index + 0.5) * alpha[dim] + np.repeat(shift[:, dim], c)
+            ud -= np.floor(ud)
+            u.append(ud)
+        sq = np.sqrt(u[0])
+        b1, b2 = sq * (1.0 - u[1]), sq * u[1]
+        fr = patches.faces[rec[lo:hi]]
+        nrm = patches.normal[rec[lo:hi]]
+        x, nx = [], []
+        for j in range(3):
+            c0 = vc[j][fr[:, 0]]
+            x.append(c0[local] + b1 * (vc[j][fr[:, 1]] - c0)[local] + b2 * (vc[j][fr[:, 2]] - c0)[local])
+            nx.append(nrm[local, j])
+        lp = light[lo:hi][local]
+        y = [np.empty(m) for _ in range(3)]
+        if para is not None and lights.corner is not None and lights.edges is not None:
+            is_flat = para[lp]
+            flat = np.flatnonzero(is_flat)  # the whole light, stratified in 2-D
+            lf = lp[flat]
+            u2, u3 = u[2][flat], u[3][flat]
             for j in range(3):
-                c0 = vc[j][fr[:, 0]]
-                x.append(c0[local] + b1 * (vc[j][fr[:, 1]] - c0)[local] + b2 * (vc[j][fr[:, 2]] - c0)[local])
-                nx.append(nrm[local, j])
-            lp = light[lo:hi][local]
-            y = [np.empty(m) for _ in range(3)]
-            if para is not None and lights.corner is not None and lights.edges is not None:
-                is_flat = para[lp]
-                flat = np.flatnonzero(is_flat)  # the whole light, stratified in 2-D
-                lf = lp[flat]
-                u2, u3 = u[2][flat], u[3][flat]
-                for j in range(3):
-                    y[j][flat] = lights.corner[lf, j] + u2 * lights.edges[lf, 0, j] + u3 * lights.edges[lf, 1, j]
-                tri = np.flatnonzero(~is_flat)
-            else:
-                tri = np.arange(m)
-            if len(tri):  # a triangle of the light by area, then a point on it
-                pick = np.clip(np.searchsorted(key, lp[tri] + u[4][tri], side="right") - 1, 0, len(order) - 1)
-                g = patches.faces[emitters[order[pick]]]
-                pts = triangle_points(v[g[:, 0]], v[g[:, 1]], v[g[:, 2]], np.stack([u[2][tri], u[3][tri]], axis=1))
-                for j in range(3):
-                    y[j][tri] = pts[:, j]
-            ny = [lights.normal[lp, j] for j in range(3)]
-            d = [y[j] - x[j] for j in range(3)]
-            r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-            dist = np.sqrt(np.maximum(r2, 1e-300))
-            cx = (nx[0] * d[0] + nx[1] * d[1] + nx[2] * d[2]) / dist
-            cy = -(ny[0] * d[0] + ny[1] * d[1] + ny[2] * d[2]) / dist
-            ok = np.flatnonzero((cx > 0) & (cy > 0))
-            geom = cx[ok] * cy[ok] / (math.pi * r2[ok])
-            origin = np.empty((len(ok), 3))
-            seg = np.empty((len(ok), 3))
+                y[j][flat] = lights.corner[lf, j] + u2 * lights.edges[lf, 0, j] + u3 * lights.edges[lf, 1, j]
+            tri = np.flatnonzero(~is_flat)
+        else:
+            tri = np.arange(m)
+        if len(tri):  # a triangle of the light by area, then a point on it
+            pick = np.clip(np.searchsorted(key, lp[tri] + u[4][tri], side="right") - 1, 0, len(order) - 1)
+            g = patches.faces[emitters[order[pick]]]
+            pts = triangle_points(v[g[:, 0]], v[g[:, 1]], v[g[:, 2]], np.stack([u[2][tri], u[3][tri]], axis=1))
             for j in range(3):
-                origin[:, j] = x[j][ok] + offset * nx[j][ok]
-                seg[:, j] = (y[j][ok] + offset * ny[j][ok]) - origin[:, j]
-            visible = ~tracer.occluded(origin, seg, np.ones(len(ok)))
-            at = local[ok]
-            for row, wgt in enumerate((geom * visible, geom, visible.astype(np.float64), None)):
-                out[row, lo:hi] += np.bincount(at, weights=wgt, minlength=hi - lo)
+                y[j][tri] = pts[:, j]
+        ny = [lights.normal[lp, j] for j in range(3)]
+        d = [y[j] - x[j] for j in range(3)]
+        r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        dist = np.sqrt(np.maximum(r2, 1e-300))
+        cx = (nx[0] * d[0] + nx[1] * d[1] + nx[2] * d[2]) / dist
+        cy = -(ny[0] * d[0] + ny[1] * d[1] + ny[2] * d[2]) / dist
+        ok = np.flatnonzero((cx > 0) & (cy > 0))
+        geom = cx[ok] * cy[ok] / (math.pi * r2[ok])
+        origin = np.empty((len(ok), 3))
+        seg = np.empty((len(ok), 3))
+        for j in range(3):
+            origin[:, j] = x[j][ok] + offset * nx[j][ok]
+            seg[:, j] = (y[j][ok] + offset * ny[j][ok]) - origin[:, j]
+        visible = ~tracer.occluded(origin, seg, np.ones(len(ok)))
+        at = local[ok]
+        for row, wgt in enumerate((geom * visible, geom, visible.astype(np.float64), None)):
+            out[row, lo:hi] += np.bincount(at, weights=wgt, minlength=hi - lo)
     return out[0], out[1], out[2], out[3]
 
 

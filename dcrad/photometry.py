@@ -349,19 +349,14 @@ class _Emitters:
         rays traced)."""
         out = np.zeros((4, len(rec)))
         traced = 0
-        for lo, hi in ray_runs(counts, _RAY_BATCH):
-            c = counts[lo:hi]
-            m = int(c.sum())
-            if m:
-                local = np.repeat(np.arange(hi - lo), c)
-                index = first[lo:hi][local] + np.arange(m) - np.repeat(np.cumsum(c) - c, c)
-                u = lattice(index, shift[lo:hi][local], 5)
-                ok, g, seen = self.segments(tracer, corners[rec[lo:hi]], normals[rec[lo:hi]], local,
-                                            light[lo:hi][local], u, offset)
-                traced += len(ok)
-                at = local[ok]
-                for row, wgt in enumerate((g * seen, g, seen.astype(np.float64), None)):
-                    out[row, lo:hi] += np.bincount(at, weights=wgt, minlength=hi - lo)
+        for lo, hi, local, index in ray_runs(counts, _RAY_BATCH):
+            u = lattice(first[lo:hi][local] + index, shift[lo:hi][local], 5)
+            ok, g, seen = self.segments(tracer, corners[rec[lo:hi]], normals[rec[lo:hi]], local,
+                                        light[lo:hi][local], u, offset)
+            traced += len(ok)
+            at = local[ok]
+            for row, wgt in enumerate((g * seen, g, seen.astype(np.float64), None)):
+                out[row, lo:hi] += np.bincount(at, weights=wgt, minlength=hi - lo)
         return out, traced
 
     def tail(self, tracer: Tracer, corners: np.ndarray, normals: np.ndarray, rec: np.ndarray, run: np.ndarray,
@@ -377,22 +372,19 @@ class _Emitters:
         out = np.zeros((len(rec), 3))
         shift = rng.random((len(rec), 5))
         traced = 0
-        for lo, hi in ray_runs(n, _RAY_BATCH):
+        for lo, hi, local, index in ray_runs(n, _RAY_BATCH):
             c = n[lo:hi]
-            m = int(c.sum())
-            if m:
-                local = np.repeat(np.arange(hi - lo), c)
-                u = lattice(np.arange(m) - np.repeat(np.cumsum(c) - c, c), shift[lo:hi][local], 5)
-                r = run[lo:hi][local]
-                pick = np.clip(np.searchsorted(cdf, r + u[:, 2], side="right") - 1, at[r], at[r + 1] - 1)
-                lt = lights[pick]
-                ok, g, seen = self.segments(tracer, corners[rec[lo:hi]], normals[rec[lo:hi]], local, lt, u, offset)
-                traced += len(ok)
-                lk = lt[ok]
-                val = (g * seen * self.lights.area[lk] / (math.pi * prob[pick[ok]] * c[local[ok]]))[:, None] \
-                    * self.lights.exitance[lk]
-                for ch in range(3):
-                    out[lo:hi, ch] += np.bincount(local[ok], weights=val[:, ch], minlength=hi - lo)
+            u = lattice(index, shift[lo:hi][local], 5)
+            r = run[lo:hi][local]
+            pick = np.clip(np.searchsorted(cdf, r + u[:, 2], side="right") - 1, at[r], at[r + 1] - 1)
+            lt = lights[pick]
+            ok, g, seen = self.segments(tracer, corners[rec[lo:hi]], normals[rec[lo:hi]], local, lt, u, offset)
+            traced += len(ok)
+            lk = lt[ok]
+            val = (g * seen * self.lights.area[lk] / (math.pi * prob[pick[ok]] * c[local[ok]]))[:, None] \
+                * self.lights.exitance[lk]
+            for ch in range(3):
+                out[lo:hi, ch] += np.bincount(local[ok], weights=val[:, ch], minlength=hi - lo)
         return out, traced
 
 
