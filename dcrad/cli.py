@@ -445,7 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "with 10x the rays per power)")
     add_flags(p, SolverConfig)
     p.add_argument("--patch-size", type=float, default=0.0,
-                   help="largest patch edge in metres (default: 1/40 of the scene diagonal)")
+                   help="element size in metres (default 0: automatic, mesh.py)")
     p.set_defaults(func=cmd_compare)
     return ap
 

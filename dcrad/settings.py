@@ -81,7 +81,8 @@ def add_flags(parser: argparse.ArgumentParser, cls, skip: tuple[str, ...] = (),
 def add_scene_flags(parser: argparse.ArgumentParser) -> None:
     """``--patch-size`` and ``--scale``: how a scene file becomes patches (not solver settings)."""
     parser.add_argument("--patch-size", type=float, default=0.0,
-                        help="largest patch edge in metres (default 0: 1/40 of the scene diagonal)")
+                        help="element size in metres: larger triangles are split to it (default 0: automatic, "
+                             "the rays' mean free path / 6; see README, The mesh)")
     parser.add_argument("--scale", type=float, default=1.0,
                         help="multiply scene coordinates by this (unit conversion to metres)")
     parser.add_argument("--up", default="auto", choices=("auto", "x", "y", "z", "-x", "-y", "-z"),
