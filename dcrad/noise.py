@@ -209,6 +209,8 @@ class NoiseTally:
         #: (d2, b2, r2) per element, and per input triangle, over per patch, from the last ``resync``
         self.factors = (1.0, 1.0, 1.0)
         self.triangle_factors = (1.0, 1.0, 1.0)
+        #: some patches share one B (clusters): the per-element factors are not 1
+        self.pooled = bool(n and (patches.cluster >= 0).any())
         self.resync(patches)
 
     # -- the per-batch hooks (Solver.step / Solver.commit) --------------------------
@@ -278,8 +280,7 @@ class NoiseTally:
         s.r2 = float((a * rowsum(r * r)).sum()) / 3.0
         s.r1 = np.array([float((a * r[:, c]).sum()) for c in range(r.shape[1])])
         pairs = ((self.diff, s.d2), (b, s.b2), (r, s.r2))
-        clustered = bool((patches.cluster >= 0).any())
-        self.factors = tuple(_read_share(self._reads, a, x, whole) if clustered else 1.0  # type: ignore[assignment]
+        self.factors = tuple(_read_share(self._reads, a, x, whole) if self.pooled else 1.0  # type: ignore[assignment]
                              for x, whole in pairs)
         self.triangle_factors = tuple(_read_share(self._triangles, a, x, whole)  # type: ignore[assignment]
                                       for x, whole in pairs)

@@ -73,8 +73,8 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         # never sparser than the pass before: at low densities the 32-ray floors and the gather's
         # tails make a pass's noise hard to predict
         # and never more than PASS_GROWTH times denser: a pass's own noise can be far above what its
-        # density predicts (a lamp in a fixture), and escalating by the ratio ran a real office's third
-        # pass at 4e9 rays per emitted power, which no run can pay (issue 26)
+        # density predicts (a lamp in a fixture), and escalating by the ratio can ask for 4e9 rays per
+        # emitted power, which no run can pay
         want = max((est.noise_refl / target) ** 2 * 1.1, 1.0)
         rpp = cfg.rays_per_power * min(want, PASS_GROWTH)
         if want > PASS_GROWTH:

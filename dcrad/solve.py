@@ -207,7 +207,7 @@ class Solver:
         #: the density; the replicas plan, and a budget coarsens, the job's gather: share.run_replica)
         self.planned_final_rays = 0
         self._fitted = False  #: ``fit_budget`` has run
-        self._fresh_at = -1  #: the batch of the last resync ``stop_reason`` asked for (-1: none)
+        self._fresh_at = -FRESH_EVERY  #: the batch of the last resync ``stop_reason`` asked for
         self._t0 = clock()
 
     # == one Embree call ===========================================================
@@ -293,8 +293,8 @@ class Solver:
             idx, power, amounts = rows[sel], power[sel], amounts[sel]
         # a shooter whose power needs more rays than one shot may have (max_rays_per_shot) shoots
         # that many at the run's power per ray and keeps the rest unshot for later batches: shot
-        # whole, its rays carried more power than the density planned, and a lamp of two
-        # triangles lit a real office with 131k rays whatever the target (issue 26)
+        # whole, its rays would carry more power than the density planned, and a lamp of two
+        # triangles would light a room with 2 x 65,536 rays whatever the target
         full = rowsum(np.abs(power)) / (self.power_per_ray * st.ray_factor)
         share = np.where(full > counts, counts / np.maximum(full, 1e-300), 1.0)
         power, amounts = power * share[:, None], amounts * share[:, None]
@@ -527,8 +527,8 @@ class Solver:
         # took 30.5M rays to 2%; gathered and finished: 4.3M rays for 1.6%)
         # ... unless the pilot measured the gather so noisy that matching shooting's noise would take
         # more shadow rays than shooting the emitted power at the run's density takes rays: a lamp
-        # in a fixture (louvres, a trough) is seen partly by most receivers, and the plan kept a
-        # gather 13x noisier than shooting on a real office (issue 26): the light is shot instead
+        # in a fixture (louvres, a trough) is seen partly by most receivers, and its gather can be
+        # 13x noisier than shooting: the light is shot instead
         equal = shadow * ratio * ratio * len(receivers)
         if plan is not None and preset is None and equal > cfg.rays_per_power:
             self.choices.append(f"direct light shot, not gathered, and no final gather: the gather's {shadow} shadow "
@@ -764,23 +764,22 @@ class Solver:
             return "tolerance"
         if by_accuracy(cfg):
             est = self.estimate()
+            # a clustered table's estimate scales the patches' sums by factors of the last resync
+            # (noise.py): near a stop, read them fresh, at most every FRESH_EVERY batches (O(n) each):
+            # on the first batch's factors a closed cube ran on past its target and then ended on its
+            # noise floor at 1.1% of a 2% target
+            near = self.target_error(est) <= NEAR_STOP * cfg.accuracy or noise_floor(est, cfg.accuracy)
+            if near and self.noise.pooled and self.stats.batches - self._fresh_at >= FRESH_EVERY:
+                self._fresh_at = self.stats.batches
+                self.noise.resync(self.patches)
+                est = self.estimate()
             if self.target_error(est) <= cfg.accuracy:
                 return "accuracy"
             if self.final_pending():
                 if est.bias_refl <= FINAL_BIAS_SHARE * cfg.accuracy:
                     return "final_gather"  # the light is nearly all shot: gather it (``run``)
             elif noise_floor(est, cfg.accuracy):
-                # the estimate's per-element factors are those of the last resync (noise.py): read them
-                # fresh before ending on the floor (a closed cube stopped at 1.1%, against a 2% target,
-                # on factors of the first batch); at most every FRESH_EVERY batches, a resync is O(n)
-                if self.stats.batches - self._fresh_at >= FRESH_EVERY or self._fresh_at < 0:
-                    self._fresh_at = self.stats.batches
-                    self.noise.resync(self.patches)
-                    est = self.estimate()
-                    if self.target_error(est) <= cfg.accuracy:
-                        return "accuracy"
-                if noise_floor(est, cfg.accuracy):
-                    return "noise_floor"
+                return "noise_floor"
         if cfg.time_limit and self.elapsed() >= cfg.time_limit:
             return "time_limit"
         if self.gather_reserve and self.final_pending():
@@ -873,8 +872,11 @@ BUDGET_FIT = 0.85
 MIN_BUDGET_SHADOW = 16
 #: the direct gather takes at most this share of a --max-rays budget; else the emitters are shot
 DIRECT_BUDGET_SHARE = 0.5
-#: batches between the resyncs ``stop_reason`` asks for before it ends a run on its noise floor
+#: batches between the resyncs ``stop_reason`` asks for near a stop (clustered tables), and how near:
+#: the estimate on the last factors within this many times the target (a cluster of 16 patches
+#: divides their noise's square by up to 16)
 FRESH_EVERY = 16
+NEAR_STOP = 4.0
 
 
 def budget_cut_note(cut: int, planned: int, limit: str, config: SolverConfig, used: int) -> str:
