@@ -384,7 +384,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("solve", help="solve a scene and write radiosity, meshes, previews and a report")
-    p.add_argument("scene", help="an .obj/.gltf/.glb file, or a built-in scene: office, cornell, furnace "
+    p.add_argument("scene", help="an .obj/.gltf/.glb file, or a built-in scene: office, cornell, furnace, cie_room "
                                  "(parameters as office:rows=3,cols=4,seed=2)")
     p.add_argument("--out", default="out", help="output folder (default ./out)")
     p.add_argument("--width", type=int, default=640, help="preview width in pixels")

@@ -108,12 +108,12 @@ def first_hits(tri, origins, dirs, eps=1e-9):
 
 # -- registry ------------------------------------------------------------------------
 def test_registry(tmp_path):
-    assert scenes.names() == ["cornell", "furnace", "office"]
+    assert scenes.names() == ["cie_room", "cornell", "furnace", "office"]
     for name in scenes.names():
         assert scenes.describe(name)
         path = scenes.write_builtin(name, tmp_path / "sub")
         assert path == tmp_path / "sub" / f"{name}.obj" and path.with_suffix(".mtl").exists()
-    with pytest.raises(ValueError, match="cornell, furnace, office"):
+    with pytest.raises(ValueError, match="cie_room, cornell, furnace, office"):
         scenes.write_builtin("nope", tmp_path)
     with pytest.raises(ValueError):
         scenes.describe("nope")
