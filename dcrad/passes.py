@@ -17,7 +17,7 @@ from .energy import ACCOUNTS, MAGNITUDES
 from .noise import finite
 from .solve import Solver
 
-__all__ = ["blend", "solve_to_accuracy", "PASS_SEED", "PASS_GROWTH"]
+__all__ = ["blend", "solve_to_accuracy", "settle", "PASS_SEED", "PASS_GROWTH"]
 
 #: each further pass seeds its random streams this much after the pass before
 PASS_SEED = 7919
@@ -104,4 +104,16 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         if solver.snapshots:  # the last snapshot's estimate is the blend's (its B stays the last pass's)
             last = solver.snapshots[-1]
             last.error_rms, last.error_refl = finite(blended.rms), finite(blended.rms_refl)
+    settle(solver)
     return solver
+
+
+def settle(solver) -> None:
+    """Clusters whose patches' light differs beyond their noise are undone, the rest keep one B
+    (NoiseTally.settle); the report says how many, and the estimate counts the kept ones' bias."""
+    if not solver.noise.pooled:
+        return
+    kept, undone = solver.noise.settle(solver.patches)
+    solver.choices.append(f"clusters: {kept} keep one B (their patches agree within twice their noise; the rest of "
+                          f"their spread is in the estimate's bias), {undone} undone (their patches' light differs "
+                          f"beyond their noise: each keeps its own B)")

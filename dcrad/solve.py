@@ -717,8 +717,9 @@ class Solver:
         """The estimated RMS error of B now: noise and unshot bias (noise.py); O(1)."""
         p = self.patches
         ambient = bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho)
-        est = combine(self.noise.sums(), ambient)
-        est.triangles_refl = finite(combine(self.noise.sums(per_triangle=True), ambient).rms_refl)
+        est = combine(self.noise.sums(), ambient, self.noise.pool_bias)
+        per_triangle = combine(self.noise.sums(per_triangle=True), ambient, self.noise.pool_bias)
+        est.triangles_refl = finite(per_triangle.rms_refl)
         return est
 
     def target_error(self, est: Estimate | None = None) -> float:
