@@ -159,7 +159,7 @@ def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
     from .accuracy import by_accuracy
     from .direct import MAX_ANALYTIC_RECEIVERS
     from .divide import auto_workers, estimate_patches
-    from .pipeline import default_patch_size, resolve_scene
+    from .pipeline import default_patch_size, patch_limit, resolve_scene
     from .scene import load_scene
 
     if args.planes or args.subscenes > 1:
@@ -175,6 +175,11 @@ def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
     tri = scene.vertices[scene.faces[scene.valid]]
     config = _config(args)
     n = estimate_patches(tri, size)
+    if n <= patch_limit():
+        # the unknowns, not the patches: a run's rays follow them (clusters share one B), and
+        # only a run in this process settles its clusters (passes.settle).  Meshing here costs
+        # little (the ice-cream store: 0.1 s) beside loading
+        n = scene.patches(size).units
     gathers = by_accuracy(config) and config.direct and n <= MAX_ANALYTIC_RECEIVERS
     workers, choice = auto_workers(n, os.cpu_count() or 1, gathers)
     if workers > 0 and fresh:  # the workers' run writes its own copy; out/ keeps only what it wrote

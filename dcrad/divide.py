@@ -824,6 +824,8 @@ def estimate_patches(triangles: np.ndarray, patch_size: float) -> int:
 def auto_workers(n_patches: int, cpus: int, gathers: bool = False) -> tuple[int, str]:
     """Local worker processes for `dcrad solve` without --workers, and the report's line on it.
 
+    n_patches: the run's unknowns (Patches.units: a cluster of small triangles counts once).
+
     gathers: the run is in accuracy mode with the direct light gathered, so it takes the final
     plan (exact direct gather, shot reflected light, final gather: accuracy.py).  Two workers then
     run it as a shared run (share.py: the whole scene on each, the work split), which pays for
@@ -834,17 +836,17 @@ def auto_workers(n_patches: int, cpus: int, gathers: bool = False) -> tuple[int,
         return 0, "solved in this process (--workers 0 by default): one CPU, local workers would only compete"
     if gathers:
         if n_patches < SHARE_PATCHES:
-            return 0, (f"solved in this process (--workers 0 by default): about {n_patches} patches, below the "
+            return 0, (f"solved in this process (--workers 0 by default): about {n_patches} unknowns, below the "
                        f"{SHARE_PATCHES} at which two local workers sharing the run pay for their start-up "
                        f"(--workers 2 shares it anyway)")
         return 2, (f"two local worker processes by default, sharing one run of the whole scene: about {n_patches} "
-                   f"patches (at least {SHARE_PATCHES}); its light is gathered (the final plan), which a "
+                   f"unknowns (at least {SHARE_PATCHES}); its light is gathered (the final plan), which a "
                    f"divided run would lose (share.py)")
     if n_patches < AUTO_DIVIDE_PATCHES:
-        return 0, (f"solved in this process (--workers 0 by default): about {n_patches} patches, below the "
+        return 0, (f"solved in this process (--workers 0 by default): about {n_patches} unknowns, below the "
                    f"{AUTO_DIVIDE_PATCHES} at which two local workers pay for their start-up "
                    f"(--workers 2 divides anyway)")
-    return 2, (f"two local worker processes by default: about {n_patches} patches (at least "
+    return 2, (f"two local worker processes by default: about {n_patches} unknowns (at least "
                f"{AUTO_DIVIDE_PATCHES}: dividing pays for the start-up)")
 
 
