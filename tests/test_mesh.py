@@ -105,3 +105,61 @@ def test_refine_keeps_area_orientation_and_bounds_the_elements():
     assert (np.einsum("ij,ij->i", n, n0[idx]) > 0).all()
     assert (a[idx == 1] <= AREA_SHARE * 0.2 ** 2 * (1 + 1e-12)).all()
     assert 2 <= (idx == 0).sum() <= 16  # the sliver: a few pieces along its length (trimesh: 256)
+
+
+def test_clusters_settle_where_their_patches_agree_within_their_noise():
+    """NoiseTally.settle on a hand-made table: cluster 0's patches differ by what their noise
+    spreads (kept, its spread beyond the noise booked as bias), cluster 1's differ far beyond
+    theirs (undone: each patch keeps its own B); the numbers are computed here from the
+    definitions, S = sum A |r - r_mean|^2 against N = sum A |D/2|^2 (1 - A/A_c)."""
+    from dcrad.noise import NoiseTally
+    from dcrad.patches import Patches
+
+    n = 8
+    v = np.array([[i, 0.0, 0.0] for i in range(n + 2)] + [[i, 1.0, 0.0] for i in range(n + 2)], float)
+    f = np.array([[i, i + 1, n + 2 + i] for i in range(n)])
+    cluster = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+    p = Patches(v, f, 0.5, 0.0, np.arange(n), np.zeros(n), ["x"], cluster=cluster)
+    tally = NoiseTally(p)
+    p.radiosity = np.repeat(np.array([1.0, 1.1, 0.9, 1.0, 0.2, 2.0, 0.3, 1.9])[:, None], 3, axis=1)
+    tally.diff = np.repeat(np.array([0.4, 0.4, 0.4, 0.4, 0.01, 0.01, 0.01, 0.01])[:, None], 3, axis=1)
+    kept, undone = tally.settle(p)
+    assert (kept, undone) == (1, 1)
+    np.testing.assert_array_equal(p.cluster, [0, 0, 0, 0, -1, -1, -1, -1])
+    a = p.area[:4]
+    r = p.radiosity[:4, 0]
+    spread = float((a * (r - (a * r).sum() / a.sum()) ** 2).sum())
+    noise = float((a * 0.2 ** 2 * (1 - a / a.sum())).sum())
+    assert tally.pool_bias == pytest.approx(max(spread - noise, 0.0), abs=1e-15)
+    assert not tally.pooled or p.units == 5  # one cluster of four, four patches alone
+
+
+def test_pooling_a_uniform_furnace_lowers_its_error_per_triangle(tmp_path):
+    """A closed cube whose every surface emits E and reflects rho: B* = E / (1 - rho) on every
+    patch, exactly.  Every face split 256-fold: the small triangles form clusters, which settle
+    (their light is uniform: nearly all kept), and pooled B per triangle is closer to B* than
+    each triangle's own."""
+    from dcrad.patches import Patches
+    from scenes.furnace import furnace_box
+
+    rho = 0.5
+    fine = variant(furnace_box(tmp_path / "f", rho=rho), tmp_path / "fine", up="y", split=4)
+    _, q, _ = prepare(fine)
+    assert (q.cluster >= 0).mean() > 0.5  # all but the cells next to its lamp
+    p = Patches(q.vertices, q.faces, q.rho, np.ones((len(q), 3)), q.source, q.obj, q.names, cluster=q.cluster)
+    clusters = len(np.unique(p.cluster[p.cluster >= 0]))
+    solver = solve_to_accuracy(p, SolverConfig(accuracy=0.05, seed=4))
+    kept = len(np.unique(p.cluster[p.cluster >= 0]))
+    assert kept >= 0.9 * clusters
+    exact = 1.0 / (1.0 - rho)
+    kept_rows = p.cluster >= 0
+    a = p.area[kept_rows, None]
+
+    def rms() -> float:
+        return float(np.sqrt((a * (p.radiosity[kept_rows] - exact) ** 2).sum() / a.sum() / 3))
+
+    own = rms()
+    p.pool()
+    members = kept_rows.sum() / kept  # a cluster's patches, on average
+    assert rms() < 2.0 * own / np.sqrt(members), (rms(), own, members)  # noise averages as 1/sqrt(members)
+    assert solver.ledger.closure() < 1e-9
