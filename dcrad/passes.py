@@ -114,6 +114,6 @@ def settle(solver) -> None:
     if not solver.noise.pooled:
         return
     kept, undone = solver.noise.settle(solver.patches)
-    solver.choices.append(f"clusters: {kept} keep one B (their patches agree within four times their noise's spread; the rest of "
-                          f"their spread is in the estimate's bias), {undone} undone (their patches' light differs "
-                          f"beyond their noise: each keeps its own B)")
+    solver.choices.append(f"clusters: {kept} keep one B (their patches agree within four times their noise's "
+                          f"spread; the rest of their spread is in the estimate's bias), {undone} undone (their "
+                          f"patches' light differs beyond their noise: each keeps its own B)")
