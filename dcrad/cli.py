@@ -140,7 +140,7 @@ def cmd_solve(args) -> int:
                               on_progress=on_progress, should_stop=stop.should_stop,
                               width=args.width, height=args.height, divide=divide, planes=planes or None,
                               up=args.up, two_sided=args.two_sided, workplane=args.workplane,
-                              loaded=loaded[:2] if loaded is not None else None)
+                              loaded=(loaded[0], loaded[1], loaded[3]) if loaded is not None else None)
     finally:
         _restore(previous)
     final = SimpleNamespace(**report["error"]) if report.get("error") else None
@@ -152,13 +152,15 @@ def cmd_solve(args) -> int:
 
 
 def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
-    """--workers by default: from the scene's patch count (estimated before meshing) and the CPUs;
-    and, when it chooses this process, (scene, load seconds, path) for the solve to reuse (a
+    """--workers by default: from the scene's unknowns (meshed here, or estimated when too large to
+    mesh) and the CPUs; and, when it chooses this process, (scene, load seconds, path, patches or
+    None) for the solve to reuse (a
     built-in scene is written into ``out``/scene, where the solve writes it: the 3x3 office was
     written and loaded twice, 0.5-1.2 s more than ``--workers 0``)."""
     from .accuracy import by_accuracy
     from .direct import MAX_ANALYTIC_RECEIVERS
-    from .divide import auto_workers, estimate_patches
+    from .divide import auto_workers
+    from .mesh import estimate_elements
     from .pipeline import default_patch_size, patch_limit, resolve_scene
     from .scene import load_scene
 
@@ -174,17 +176,18 @@ def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
     size = args.patch_size if args.patch_size and args.patch_size > 0 else default_patch_size(scene)
     tri = scene.vertices[scene.faces[scene.valid]]
     config = _config(args)
-    n = estimate_patches(tri, size)
+    n = estimate_elements(tri, size)
+    patches = None
     if n <= patch_limit():
         # the unknowns, not the patches: a run's rays follow them (clusters share one B), and
-        # only a run in this process settles its clusters (passes.settle).  Meshing here costs
-        # little (the ice-cream store: 0.1 s) beside loading
-        n = scene.patches(size).units
+        # only a run in this process settles its clusters (passes.settle); the mesh is handed on
+        patches = scene.patches(size)
+        n = patches.units
     gathers = by_accuracy(config) and config.direct and n <= MAX_ANALYTIC_RECEIVERS
     workers, choice = auto_workers(n, os.cpu_count() or 1, gathers)
     if workers > 0 and fresh:  # the workers' run writes its own copy; out/ keeps only what it wrote
         shutil.rmtree(out / "scene", ignore_errors=True)
-    return workers, choice, (scene, seconds, path) if workers == 0 else None
+    return workers, choice, (scene, seconds, path, patches) if workers == 0 else None
 
 
 def _note_choice(out: Path, choice: str | None) -> None:

@@ -46,7 +46,6 @@ from .boundary import (
 from .config import DivideConfig, SolverConfig
 from .energy import Ledger
 from .errors import ConfigError
-from .mesh import estimate_elements
 from .noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
 from .partition import clip, partition
 from .patches import Patches
@@ -58,7 +57,7 @@ from .solve import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
     "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor",
-    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers", "estimate_patches",
+    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers",
     "SUBSCENES_PER_WORKER", "SHARE_PATCHES", "AUTO_DIVIDE_PATCHES", "expected_work", "placement",
     "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene", "boundaries_to_array",
     "boundaries_from_array", "run_subscenes",
@@ -814,11 +813,6 @@ def placement(work: Sequence[float], workers: int) -> list[int]:
         load[hi] -= d
         load[lo] += d
     return slot.tolist()
-
-
-def estimate_patches(triangles: np.ndarray, patch_size: float) -> int:
-    """About how many patches meshing (n,3,3) triangles to ``patch_size`` gives (mesh.estimate_elements)."""
-    return estimate_elements(triangles, patch_size)
 
 
 def auto_workers(n_patches: int, cpus: int, gathers: bool = False) -> tuple[int, str]:

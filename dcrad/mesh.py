@@ -75,10 +75,20 @@ def element_size(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, str]:
                   f"smaller ones kept whole (mesh.py)")
 
 
+def _edges(tri: np.ndarray) -> np.ndarray:
+    """(m, 3) edge lengths of (m,3,3) triangles: edge k joins corners k and k+1."""
+    return np.linalg.norm(np.roll(tri, -1, axis=1) - tri, axis=2)
+
+
+def _key(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """An undirected edge's key from its two vertex indices (vertex counts stay far below 2^31)."""
+    return np.minimum(a, b) * np.int64(1 << 31) + np.maximum(a, b)
+
+
 def _split_mask(tri: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     """(split (m,) bool, longest edge index (m,)): which triangles ``refine`` bisects, and where
     (edge k joins corners k and k+1)."""
-    edges = np.linalg.norm(np.roll(tri, -1, axis=1) - tri, axis=2)
+    edges = _edges(tri)
     k = edges.argmax(axis=1)
     longest = edges[np.arange(len(tri)), k]
     area = triangle_areas(tri)
@@ -114,8 +124,7 @@ def refine(vertices: np.ndarray, faces: np.ndarray, size: float, max_levels: int
         f, kk, idx = faces[split], k[split], index[split]
         rows = np.arange(len(f))
         a, b, c = f[rows, kk], f[rows, (kk + 1) % 3], f[rows, (kk + 2) % 3]
-        lo_, hi_ = np.minimum(a, b), np.maximum(a, b)
-        key = lo_ * np.int64(1 << 31) + hi_  # vertex counts stay far below 2^31
+        key = _key(a, b)
         uniq, inv = np.unique(key, return_inverse=True)
         pos = np.searchsorted(keys, uniq)
         known = (pos < len(keys)) & (keys[np.minimum(pos, len(keys) - 1)] == uniq) if len(keys) else \
@@ -142,12 +151,6 @@ def refine(vertices: np.ndarray, faces: np.ndarray, size: float, max_levels: int
     return np.concatenate(verts), faces[order], index[order]
 
 
-def _edge_keys(faces: np.ndarray) -> np.ndarray:
-    """(m, 3) keys of each face's edges (edge k joins corners k and k+1), as ``refine`` keys them."""
-    a, b = faces, np.roll(faces, -1, axis=1)
-    return np.minimum(a, b) * np.int64(1 << 31) + np.maximum(a, b)
-
-
 def _close(faces: np.ndarray, index: np.ndarray, keys: np.ndarray, mids: np.ndarray):
     """Split every face at the midpoints its neighbours put on its edges (no hanging vertices).
 
@@ -157,7 +160,7 @@ def _close(faces: np.ndarray, index: np.ndarray, keys: np.ndarray, mids: np.ndar
     if not len(keys):
         return faces, index
     for _ in range(64):
-        ek = _edge_keys(faces)
+        ek = _key(faces, np.roll(faces, -1, axis=1))  # (m, 3): edge k joins corners k and k+1
         pos = np.minimum(np.searchsorted(keys, ek), len(keys) - 1)
         hang = keys[pos] == ek  # (m, 3): this edge has a midpoint
         todo = np.flatnonzero(hang.any(axis=1))
@@ -182,25 +185,24 @@ def estimate_elements(triangles: np.ndarray, size: float) -> int:
     if len(triangles) == 0 or not size > 0:
         return len(triangles)
     area = triangle_areas(triangles)
-    longest = np.linalg.norm(np.roll(triangles, -1, axis=1) - triangles, axis=2).max(axis=1)
+    longest = _edges(triangles).max(axis=1)
     by_area = np.where(longest > size, np.ceil(np.log2(np.maximum(area / (AREA_SHARE * size * size), 1.0))), 0)
     by_length = np.ceil(np.log2(np.maximum(longest / (SLIVER_EDGES * size), 1.0)))
     levels = np.minimum(np.maximum(by_area, by_length), 60)
     return int(np.sum(2.0 ** levels))
 
 
-def mesh_note(size: float, how: str | None, source: np.ndarray, cluster: np.ndarray, n_input: int) -> str:
+def mesh_note(size: float, how: str | None, table: list[dict]) -> str:
     """The report's line on the mesh: the size and how it was chosen (``how`` None: --patch-size),
-    how many input triangles were split and into how many elements, how many were kept whole and
-    grouped into how many clusters."""
-    pieces = np.bincount(source, minlength=n_input)
-    split = int((pieces > 1).sum())
+    and the totals of ``mesh_table``: triangles split into how many elements, kept whole, grouped
+    into how many clusters."""
+    total = {k: sum(r[k] for r in table) for k in ("triangles", "split", "split_into", "kept_whole", "clustered",
+                                                   "clusters", "elements")}
     chosen = how if how is not None else f"element size {size:.4g} m (--patch-size)"
-    grouped = cluster >= 0
-    return (f"mesh: {chosen}; {int((pieces > 0).sum())} input triangles -> {len(source)} elements: {split} split "
-            f"into {int(pieces[pieces > 1].sum())}, {int((pieces == 1).sum())} kept whole, of which "
-            f"{int(grouped.sum())} grouped into {len(np.unique(cluster[grouped]))} clusters that share one B "
-            f"(small neighbours of one surface facing alike); {len(source) - int(grouped.sum())} elements alone")
+    return (f"mesh: {chosen}; {total['triangles']} input triangles -> {total['elements']} elements: "
+            f"{total['split']} split into {total['split_into']}, {total['kept_whole']} kept whole, of which "
+            f"{total['clustered']} grouped into {total['clusters']} clusters that share one B (small neighbours "
+            f"of one surface facing alike); {total['elements'] - total['clustered']} elements alone")
 
 
 def _lamp_cells(triangles: np.ndarray, size: float) -> np.ndarray:
@@ -208,7 +210,7 @@ def _lamp_cells(triangles: np.ndarray, size: float) -> np.ndarray:
     (corners and a barycentric grid at the element size over each)."""
     if not len(triangles):
         return np.zeros((0, 3), np.int64)
-    longest = np.linalg.norm(np.roll(triangles, -1, axis=1) - triangles, axis=2).max(axis=1)
+    longest = _edges(triangles).max(axis=1)
     pts = [triangles.reshape(-1, 3)]
     for steps in np.unique(np.minimum(np.ceil(longest / size), 64).astype(np.int64)):
         sel = triangles[np.ceil(np.minimum(longest / size, 64)).astype(np.int64) == steps]
@@ -260,18 +262,28 @@ def clusters(triangles: np.ndarray, obj: np.ndarray, whole: np.ndarray, size: fl
     return out
 
 
-def mesh_table(names: list, obj: np.ndarray, source: np.ndarray, cluster: np.ndarray, n_input: int,
-               input_obj: np.ndarray) -> list[dict]:
+def mesh_table(names: list, obj: np.ndarray, source: np.ndarray, cluster: np.ndarray, n_input: int) -> list[dict]:
     """Per object (report.json's ``mesh.objects``): its input triangles, how many were split and
     into how many elements, how many were kept whole and into how many clusters those were grouped.
-    ``obj``/``source``/``cluster``: the front patches'; ``input_obj`` (T,): each input triangle's."""
+    ``obj``/``source``/``cluster``: the front patches' (a cluster lies in one object)."""
+    k = max(len(names), int(obj.max()) + 1 if len(obj) else 0)
     pieces = np.bincount(source, minlength=n_input)
-    rows = []
-    for k in np.unique(obj):
-        mine = obj == k
-        tri = np.flatnonzero((input_obj == k) & (pieces > 0))
-        grouped = cluster[mine] >= 0
-        rows.append({"name": names[int(k)], "triangles": len(tri), "split": int((pieces[tri] > 1).sum()),
-                     "elements": int(mine.sum()), "kept_whole": int((pieces[tri] == 1).sum()),
-                     "clustered": int(grouped.sum()), "clusters": len(np.unique(cluster[mine][grouped]))})
+    first = np.zeros(n_input, np.int64)
+    first[source[::-1]] = obj[::-1]  # each input triangle's object, from one of its patches
+    seen = pieces > 0
+
+    def per_obj(where: np.ndarray, of: np.ndarray, weights=None) -> np.ndarray:
+        return np.bincount(of[where], weights=None if weights is None else weights[where], minlength=k)
+
+    split = per_obj(seen & (pieces > 1), first)
+    grouped = cluster >= 0
+    ids = np.unique(cluster[grouped])
+    c_obj = np.zeros(len(ids), np.int64)
+    c_obj[np.searchsorted(ids, cluster[grouped])] = obj[grouped]
+    columns = {"triangles": per_obj(seen, first), "split": split,
+               "split_into": per_obj(seen & (pieces > 1), first, pieces.astype(np.float64)),
+               "elements": np.bincount(obj, minlength=k), "kept_whole": per_obj(seen & (pieces == 1), first),
+               "clustered": np.bincount(obj[grouped], minlength=k), "clusters": np.bincount(c_obj, minlength=k)}
+    rows = [{"name": names[int(o)], **{key: int(col[o]) for key, col in columns.items()}}
+            for o in np.flatnonzero(columns["elements"])]
     return sorted(rows, key=lambda r: -r["elements"])

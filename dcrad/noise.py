@@ -204,17 +204,17 @@ class NoiseTally:
         self._sums = NoiseSums(rho2=(patches.rho ** 2 * patches.area[:, None]).sum(axis=0),
                                area=float(patches.total_area) if n else 0.0,
                                rho1=(patches.rho * patches.area[:, None]).sum(axis=0))
-        #: (n,) the element each patch's B is read in (Patches.reads: its cluster, else itself), and
-        #: the same with input triangles for patches (radiosity.npz's B)
-        self._reads = patches.reads() if n else np.zeros(0, np.int64)
-        self._triangles = patches.reads(per_triangle=True) if n else np.zeros(0, np.int64)
-        #: (d2, b2, r2) per element, and per input triangle, over per patch, from the last ``resync``
+        #: (d2, b2, r2) per element over per patch, from the last ``resync``
         self.factors = (1.0, 1.0, 1.0)
-        self.triangle_factors = (1.0, 1.0, 1.0)
-        #: some patches share one B (clusters): the per-element factors are not 1
-        self.pooled = bool(n and (patches.cluster >= 0).any())
         #: W^2/m^4 m^2: the kept clusters' spread beyond their noise (``settle``; 0 before)
         self.pool_bias = 0.0
+        self._regroup(patches)
+
+    def _regroup(self, patches) -> None:
+        """Read the table's clusters (``_reads``: the element each patch's B is read in, Patches.reads;
+        ``pooled``: some patches share one B, so the per-element factors are not 1) and resync."""
+        self._reads = patches.reads() if len(patches) else np.zeros(0, np.int64)
+        self.pooled = bool(len(patches) and (patches.cluster >= 0).any())
         self.resync(patches)
 
     def settle(self, patches, margin: float = 4.0) -> tuple[int, int]:
@@ -244,10 +244,7 @@ class NoiseTally:
         undo = spread > margin * noise
         patches.cluster[rows[undo[c]]] = -1
         self.pool_bias = float(np.maximum(spread - noise, 0.0)[~undo].sum())
-        self._reads = patches.reads()
-        self._triangles = patches.reads(per_triangle=True)
-        self.pooled = bool((patches.cluster >= 0).any())
-        self.resync(patches)
+        self._regroup(patches)
         return int((~undo).sum()), int(undo.sum())
 
     # -- the per-batch hooks (Solver.step / Solver.commit) --------------------------
@@ -316,18 +313,30 @@ class NoiseTally:
         s.b2 = float((a * rowsum(b * b)).sum()) / 3.0
         s.r2 = float((a * rowsum(r * r)).sum()) / 3.0
         s.r1 = np.array([float((a * r[:, c]).sum()) for c in range(r.shape[1])])
-        pairs = ((self.diff, s.d2), (b, s.b2), (r, s.r2))
-        self.factors = tuple(_read_share(self._reads, a, x, whole) if self.pooled else 1.0  # type: ignore[assignment]
-                             for x, whole in pairs)
-        self.triangle_factors = tuple(_read_share(self._triangles, a, x, whole)  # type: ignore[assignment]
-                                      for x, whole in pairs)
+        if self.pooled:
+            self.factors = self._shares(self._reads, patches)
 
-    def sums(self, per_triangle: bool = False) -> NoiseSums:
-        """The sums of B as it is read: per element (a cluster's patches share one B, Patches.pool),
-        or ``per_triangle``, per input triangle (the area-weighted mean of its patches: radiosity.npz's
-        B), by the factors of the last resync (the increments between resyncs are the patches')."""
+    def _shares(self, reads: np.ndarray, patches) -> tuple[float, float, float]:
+        """(d2, b2, r2) read in the units ``reads`` over per patch (``_read_share``), from the sums
+        of the last resync."""
         s = self._sums
-        fd, fb, fr = self.triangle_factors if per_triangle else self.factors
+        b = patches.radiosity
+        return (_read_share(reads, patches.area, self.diff, s.d2), _read_share(reads, patches.area, b, s.b2),
+                _read_share(reads, patches.area, b - patches.emission, s.r2))
+
+    def sums(self) -> NoiseSums:
+        """The sums of B as it is read, per element (a cluster's patches share one B, Patches.pool),
+        by the factors of the last resync (the increments between resyncs are the patches')."""
+        return self._scaled(self.factors)
+
+    def triangle_sums(self, patches) -> NoiseSums:
+        """The sums of B per input triangle (the area-weighted mean of its patches: radiosity.npz's
+        B); O(patches), so computed when asked (the report), not at every resync."""
+        return self._scaled(self._shares(patches.reads(per_triangle=True), patches))
+
+    def _scaled(self, factors: tuple[float, float, float]) -> NoiseSums:
+        s = self._sums
+        fd, fb, fr = factors
         return NoiseSums(s.d2 * fd, s.b2 * fb, s.r2 * fr, s.rho2.copy(), s.area, s.r1.copy(), s.rho1.copy())
 
 

@@ -83,8 +83,9 @@ def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str |
 
     ``up`` (None: detect) and ``two_sided``: see scene.load_scene.  ``timings`` (a dict)
     receives ``load_s`` (file to validated triangles) and ``mesh_s`` (triangles to patches).
-    ``loaded``: (scene, seconds) of ``path`` loaded with these settings already (`dcrad solve`'s
-    choice of workers loads it first): not loaded twice.  ``workplane``: checked against the
+    ``loaded``: (scene, seconds[, patches]) of ``path`` loaded with these settings already, and
+    meshed at this size (`dcrad solve`'s choice of workers loads and meshes it first; patches
+    None: not meshed): not loaded or meshed twice.  ``workplane``: checked against the
     meshed scene (``photometry.check_workplane``).
     """
     t0 = time.perf_counter()
@@ -97,7 +98,8 @@ def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str |
         raise ConfigError(f"--patch-size {patch_size}: must be a finite number of metres > 0 (0: automatic)")
     size = patch_size if patch_size else default_patch_size(scene)
     check_patch_count(mesh.estimate_elements(scene.vertices[scene.faces[scene.valid]], size), size)
-    patches = scene.patches(size)
+    meshed = loaded[2] if loaded is not None and len(loaded) > 2 else None
+    patches = meshed if meshed is not None else scene.patches(size)
     photometry.check_workplane(workplane, patches)
     if timings is not None:
         timings.update(load_s=t1 - t0, mesh_s=time.perf_counter() - t1)
@@ -453,13 +455,11 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     auto = scene.element_choice if scene.element_choice is not None and scene.element_choice[0] == size else None
     p = books.patches
     front = ~p.is_back
-    books.choices.insert(0, mesh.mesh_note(size, auto[1] if auto else None, p.source[front], p.cluster[front],
-                                           len(scene.faces)))
+    table = mesh.mesh_table(p.names, p.obj[front], p.source[front], p.cluster[front], len(scene.faces))
+    books.choices.insert(0, mesh.mesh_note(size, auto[1] if auto else None, table))
     p.pool()  # clustered patches share one B (their estimate was read so: noise.py)
     sections: dict = {"mesh": {"element_size_m": size, "automatic": auto is not None, "elements": len(p),
-                               "units": p.units,
-                               "objects": mesh.mesh_table(p.names, p.obj[front], p.source[front], p.cluster[front],
-                                                          len(scene.faces), scene.obj)}}
+                               "units": p.units, "objects": table}}
     outputs = write_outputs(out, scene, books.patches, width, height, sections,
                             float(settings.get("workplane_m") or 0.0), tracer=tracer, views=views, painter=painter)
     books.timings["outputs_s"] = time.perf_counter() - t0

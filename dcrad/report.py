@@ -68,7 +68,7 @@ class RunBooks:
         """The books of a single ``Solver`` run."""
         return cls(solver.patches, solver.config, solver.ledger, solver.stats, list(solver.snapshots),
                    solver.snapshot_B, solver.back_by_obj.copy(), list(solver.choices), dict(timings or {}),
-                   estimate=solver.estimate(), channels=solver.channels, stiff=solver.stiff)
+                   estimate=solver.estimate(per_triangle=True), channels=solver.channels, stiff=solver.stiff)
 
     def stiffness(self) -> dict | None:
         """The report's ``stiffness``: the measured return ratio and what it changed (None: not stiff)."""

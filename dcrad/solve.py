@@ -713,13 +713,14 @@ class Solver:
     def residual(self) -> float:
         return self.ledger.residual()
 
-    def estimate(self) -> Estimate:
-        """The estimated RMS error of B now: noise and unshot bias (noise.py); O(1)."""
+    def estimate(self, per_triangle: bool = False) -> Estimate:
+        """The estimated RMS error of B now: noise and unshot bias (noise.py); O(1).  ``per_triangle``:
+        with ``triangles_refl`` too, the estimate of B per input triangle (O(patches): the report's)."""
         p = self.patches
         ambient = bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho)
         est = combine(self.noise.sums(), ambient, self.noise.pool_bias)
-        per_triangle = combine(self.noise.sums(per_triangle=True), ambient, self.noise.pool_bias)
-        est.triangles_refl = finite(per_triangle.rms_refl)
+        if per_triangle:
+            est.triangles_refl = finite(combine(self.noise.triangle_sums(p), ambient, self.noise.pool_bias).rms_refl)
         return est
 
     def target_error(self, est: Estimate | None = None) -> float:
