@@ -766,12 +766,12 @@ class Solver:
             return "tolerance"
         if by_accuracy(cfg):
             est = self.estimate()
-            # a clustered table's estimate scales the patches' sums by factors of the last resync
+            # the estimate's bias layout and a clustered table's factors come from the last resync
             # (noise.py): near a stop, read them fresh, at most every FRESH_EVERY batches (O(n) each):
             # on the first batch's factors a closed cube ran on past its target and then ended on its
             # noise floor at 1.1% of a 2% target
             near = self.target_error(est) <= NEAR_STOP * cfg.accuracy or noise_floor(est, cfg.accuracy)
-            if near and self.noise.pooled and self.stats.batches - self._fresh_at >= FRESH_EVERY:
+            if near and self.stats.batches - self._fresh_at >= FRESH_EVERY:
                 self._fresh_at = self.stats.batches
                 self.noise.resync(self.patches)
                 est = self.estimate()

@@ -245,9 +245,9 @@ def test_default_workers_follow_the_run_not_only_the_size():
 def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatch):
     """Accuracy mode: once the target is in reach, the subscenes leave the share of their residual
     that lands the job's estimate just below it (divide.landing_goal), not a quarter each barrier.
-    The 3x3 office at 5% came to 5.05% after three plain barriers and needed a fourth.  Landed, it
-    stops a barrier earlier with fewer rays, and its error measured against a converged unsplit
-    solution is that of the plain run."""
+    The 3x3 office at 4% comes to 3.47% after four plain barriers (at 5% it did, before the bias was
+    laid out per room: noise.combine).  Landed, it stops a barrier earlier with fewer rays, and its
+    error measured against a converged unsplit solution is that of the plain run."""
     import dcrad.divide as divide
 
     path = scenes.write_builtin("office", tmp_path, seed=0)
@@ -259,9 +259,9 @@ def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatc
         if not land:
             monkeypatch.setattr(divide, "landing_goal", lambda *a: 0.0)
         _, p, _ = prepare(path)
-        run, *_ = solve_divided(p, SolverConfig(accuracy=0.05, seed=0), DivideConfig(subscenes=4, mode="exact"),
+        run, *_ = solve_divided(p, SolverConfig(accuracy=0.04, seed=0), DivideConfig(subscenes=4, mode="exact"),
                                 record=False)
-        assert run.stopped_by == "accuracy" and run.estimate is not None and run.estimate.rms_refl <= 0.05
+        assert run.stopped_by == "accuracy" and run.estimate is not None and run.estimate.rms_refl <= 0.04
         assert max(run.barrier_closures) < 1e-10
         measured = rms_error(p.radiosity, ref.radiosity, ref.area) / rms_error(refl, 0 * refl, ref.area)
         runs[land] = (run, measured)
@@ -270,8 +270,8 @@ def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatc
     assert on.barriers < off.barriers and on.snapshots[-1].rays < 0.97 * off.snapshots[-1].rays
     # the landed run's measured error meets the target (the reference's own noise is 1%) and its
     # estimate is honest: within 25% of the measured error
-    assert on_err <= 0.055 and abs(on.estimate.rms_refl / on_err - 1) < 0.25, (on_err, on.estimate)
-    assert off_err <= 0.055
+    assert on_err <= 0.045 and abs(on.estimate.rms_refl / on_err - 1) < 0.25, (on_err, on.estimate)
+    assert off_err <= 0.045
 
 
 def test_a_cancel_ends_the_barrier_in_flight(office):
@@ -344,6 +344,9 @@ def test_a_divided_run_on_its_noise_floor_says_so(tmp_path):
     divide = DivideConfig(subscenes=4)
     run, subs, boundaries, part = solve_divided(p, cfg, divide)
     assert run.stopped_by == "noise_floor" and run.estimate.noise_refl > 0.03
-    assert run.snapshots[-1].rays == run.snapshots[-2].rays  # nothing was left to shoot
+    # it stops once what is left is below noise_floor's bias share, or when no subscene has anything
+    # left to shoot, whichever comes first
+    from dcrad.accuracy import noise_floor
+    assert noise_floor(run.estimate, 0.03) or run.snapshots[-1].rays == run.snapshots[-2].rays
     books = divided_books(run, p, cfg, boundaries, part, divide)
     assert any(c.startswith("stopped on the noise floor") and "--workers 0" in c for c in books.choices)

@@ -120,10 +120,42 @@ def test_combine_normalisations():
     assert est.rms_refl == pytest.approx(0.1)
     assert est.bias_refl == 0.0
     assert math.isinf(combine(NoiseSums(d2=1.0, b2=1.0, r2=0.0, area=1.0), np.zeros(3)).rms_refl)
-    # bias: 0.1 W/m^2 still to arrive on rho 0.5 (0.15 W in all) against 3 W reflected so far: 5%
+    # bias: 0.1 W/m^2 still to arrive on rho 0.5, laid out as a uniform irradiance before any
+    # layout was read: 0.05 W/m^2 on every patch, against RMS(B - E) = 1: 5%
+    sums.rho2 = np.full(3, 0.25)
     biased = combine(sums, np.full(3, 0.1))
     assert biased.bias_refl == pytest.approx(0.05) and biased.noise_refl == pytest.approx(0.1)
+    # a uniform layout read from the light so far (H = 2 W/m^2 everywhere) says the same; the same
+    # light still to come, all in one half of the area (H = 4 there, 0 in the other), sqrt(2) more
+    sums.l1, sums.l2 = np.full(3, 0.5 * 2.0), np.full(3, 0.25 * 4.0)
+    assert combine(sums, np.full(3, 0.1)).bias_refl == pytest.approx(0.05)
+    sums.l1, sums.l2 = np.full(3, 0.5 * 0.5 * 4.0), np.full(3, 0.5 * 0.25 * 16.0)
+    assert combine(sums, np.full(3, 0.1)).bias_refl == pytest.approx(0.05 * math.sqrt(2.0))
     assert NoiseSums.from_list(sums.as_list()).as_list() == sums.as_list()
+    assert NoiseSums.from_list(sums.as_list()[:13]).l1.tolist() == [0.0] * 3  # an older peer's list
+
+
+def test_bias_layout_follows_the_rooms_the_light_is_in():
+    """Two 4 m rooms 20 m apart, light reflected in one only: the tally's layout cells keep the rooms
+    apart, and the light still to come is laid out in the lit room (RMS sqrt(2) times a uniform
+    irradiance over both), smooth within it however the light so far varies."""
+    rng = np.random.default_rng(5)
+    n = 4000
+    room = rng.integers(0, 2, n)
+    centres = rng.random((n, 3)) * 4.0 + room[:, None] * np.array([20.0, 0.0, 0.0])
+    tri = np.array([[0.0, 0.0, 0.0], [0.31, 0.0, 0.0], [0.0, 0.31, 0.0]])  # a 4 m room's 96 m^2 in 2,000
+    vertices = (centres[:, None, :] + tri[None]).reshape(-1, 3)
+    p = Patches(vertices, np.arange(3 * n).reshape(n, 3), np.full((n, 3), 0.5), np.zeros((n, 3)),
+                np.arange(n), np.zeros(n, np.int32))
+    tally = NoiseTally(p)
+    assert not set(tally._cell[room == 0]) & set(tally._cell[room == 1])
+    p.radiosity[:] = np.where(room[:, None] == 0, 0.5 * rng.random((n, 1)) * 4.0, 0.0)  # rho H, H ~ U(0, 4)
+    tally.resync(p)
+    s = tally.sums()
+    g = np.full(3, 0.1)
+    uniform = combine(NoiseSums(b2=s.b2, r2=s.r2, area=s.area, rho1=s.rho1, rho2=s.rho2), g)
+    laid = combine(s, g)
+    assert laid.bias_refl == pytest.approx(math.sqrt(1.0 / np.mean(room == 0)) * uniform.bias_refl, rel=0.08)
 
 
 def test_resolve_is_idempotent_and_tol_is_expert():
