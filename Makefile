@@ -18,7 +18,7 @@ install: $(STAMP)
 demo: install
 	$(BIN)/dcrad solve office --workers 2 --out out/office
 
-## install, then run the whole test suite (needs Docker and Chromium: see README)
+## install, then run the whole test suite (needs Docker and Chromium: see docs/guide.md, Tests)
 test: install
 	$(BIN)/python -m pytest -q
 

@@ -82,11 +82,11 @@ def add_scene_flags(parser: argparse.ArgumentParser) -> None:
     """``--patch-size`` and ``--scale``: how a scene file becomes patches (not solver settings)."""
     parser.add_argument("--patch-size", type=float, default=0.0,
                         help="element size in metres: larger triangles are split to it (default 0: automatic, "
-                             "the rays' mean free path / 6; see README, The mesh)")
+                             "the rays' mean free path / 6; see docs/design.md, The mesh follows the light)")
     parser.add_argument("--scale", type=float, default=1.0,
                         help="multiply scene coordinates by this (unit conversion to metres)")
     parser.add_argument("--up", default="auto", choices=("auto", "x", "y", "z", "-x", "-y", "-z"),
-                        help="the scene's up axis (default auto: detected; see README Units and conventions)")
+                        help="the scene's up axis (default auto: detected; see docs/guide.md, Units and conventions)")
     parser.add_argument("--two-sided", action="store_true",
                         help="every surface receives and reflects light on both sides")
     parser.add_argument("--workplane", type=float, default=0.0,

@@ -259,7 +259,7 @@ def test_compose_stack(docker_engine, build_inputs, embedded, name, tmp_path):
     started = time.monotonic()
     ok = False
     try:
-        # the README's build command: wheels, compose build, and no dangling dcrad image left
+        # the user's guide's build command: wheels, compose build, and no dangling dcrad image left
         # (every rebuild moves dcrad:latest to a new image; the old one used to stay as <none>)
         run(["bash", str(DEPLOY / "build-image.sh"), *tool], timeout=1800,
             env=dict(stack.env, PYTHON=sys.executable))

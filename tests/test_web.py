@@ -3,8 +3,8 @@
 The browser tests drive Debian's ``chromium`` through Playwright for Python (the
 system browser, never a downloaded one: ``.ci/install-browser.sh`` installs it).
 Without it they fail, naming the fix.  Screenshots of the job page go to
-``test-artifacts/`` (git-ignored): ``job-page.png`` (a finished job; the README
-shows a copy, ``docs/job-page.png``), ``job-page-running.png`` and
+``test-artifacts/`` (git-ignored): ``job-page.png`` (a finished job; the user's
+guide shows a copy, ``docs/job-page.png``), ``job-page-running.png`` and
 ``job-page-cancelled.png``.
 """
 
