@@ -36,7 +36,7 @@ from dcrad.energy import rms_error  # noqa: E402
 from dcrad.passes import solve_to_accuracy  # noqa: E402
 from dcrad.pipeline import prepare, resolve_scene  # noqa: E402
 from dcrad.rays import Tracer  # noqa: E402
-from dcrad.solve import Solver  # noqa: E402
+from dcrad.solver import Solver  # noqa: E402
 
 
 def rms(x: np.ndarray, area: np.ndarray) -> float:

@@ -24,7 +24,7 @@ from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, solve_divided
 from dcrad.energy import rms_error
 from dcrad.pipeline import prepare
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 
 
 def main(argv=None) -> int:

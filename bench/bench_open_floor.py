@@ -18,7 +18,7 @@ import numpy as np
 from dcrad.config import DivideConfig, SolverConfig
 from dcrad.divide import solve_divided
 from dcrad.energy import rms_error
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 from scenes.open_floor import open_floor, point_to_square
 
 

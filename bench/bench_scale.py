@@ -72,7 +72,7 @@ def table_mb(p) -> float:
 def one(rooms: int, patch_size: float, max_rays: int, outputs: bool) -> dict:
     import numpy as np
 
-    import dcrad.solve as solve_mod
+    import dcrad.solver as solve_mod
     from dcrad.config import SolverConfig
     from dcrad.pipeline import resolve_scene, write_outputs
     from dcrad.rays import Tracer

@@ -45,7 +45,7 @@ from dcrad.divide import (
     subscene_specs,
 )
 from dcrad.pipeline import prepare
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 
 
 def on_machines(per: np.ndarray, m: int, pending: np.ndarray, moving: np.ndarray, static: np.ndarray,

@@ -28,7 +28,7 @@ from dcrad.config import SolverConfig
 from dcrad.pipeline import prepare
 from dcrad.rays import Tracer
 from dcrad.shoot import patch_rays
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 
 
 def raw_embree_rate(patches, tracer, rays=1_000_000, repeats=3) -> float:

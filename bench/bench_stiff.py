@@ -33,7 +33,7 @@ from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, solve_divided
 from dcrad.energy import rms_error
 from dcrad.scene import load_scene
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 
 PLAIN = dict(overshoot=0.0, stiff_rays=False)
 OVERSHOOT = dict(overshoot=1.0, stiff_rays=False)

@@ -35,7 +35,7 @@ import numpy as np
 
 from dcrad import export, render
 from dcrad.accuracy import resolve
-from dcrad.config import SolverConfig
+from dcrad.config import SolverConfig, unused_divide_note
 from dcrad.divide import (
     SUBSCENES_PER_WORKER,
     DivideConfig,
@@ -786,6 +786,10 @@ class JobManager:
         timings["solve_s"] = run.stats.wall_seconds
         where = f"{len(shares.used)} worker process(es): {', '.join(sorted(shares.used))}"
         books, shared = shared_books(run, patches, config, timings, where=where)
+        unused = unused_divide_note(from_pb(DivideConfig, spec.divide, subscenes=1),
+                                    f"was shared by {len(shares.used)} worker(s), each holding the whole scene")
+        if unused:
+            books.choices.append(unused)
         shared |= {"workers_used": sorted(shares.used), "reassigned": shares.reassigned,
                    "bytes_sent": shares.bytes_sent, "display_seconds": display.seconds,
                    "display_cpu_seconds": display.cpu_seconds}

@@ -30,7 +30,7 @@ from .energy import rms_error
 from .errors import ConfigError, DcradError
 from .pipeline import prepare
 from .report import write_json
-from .solve import Solver
+from .solver import Solver
 
 __all__ = ["compare", "write_compare", "loglog_interp", "CLAIM2_FACTOR"]
 

@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 
 from .errors import ConfigError
 
-__all__ = ["Tolerances", "SolverConfig", "DivideConfig", "BOUNDARY_MODES", "TOL", "setting"]
+__all__ = ["Tolerances", "SolverConfig", "DivideConfig", "BOUNDARY_MODES", "TOL", "setting", "divide_flags_set",
+           "unused_divide_note"]
 
 
 @dataclass(frozen=True)
@@ -62,7 +63,7 @@ class SolverConfig:
     E/(1-lambda) in all, up to 1000 times its emission at rho 0.999; with
     ``stiff_rays`` the power per ray grows by sqrt((1-overshoot_min_return)/(1-lambda))
     (and the min_rays floor shrinks by it), which keeps the noise relative to B
-    about that of an ordinary scene (see solve.py).
+    about that of an ordinary scene (see solver.py).
     """
 
     seed: int = setting(0, "seed of every random stream in a run")
@@ -87,7 +88,7 @@ class SolverConfig:
     snapshot_mb: float = setting(128.0, "MB cap on the snapshots of B kept for the error curve (float16; "
                                         "past it every other snapshot is dropped)")
     overshoot: float = setting(1.0, "ambient overshooting strength in stiff scenes (0: plain progressive "
-                                    "refinement; see solve.py)")
+                                    "refinement; see solver.py)")
     overshoot_min_return: float = setting(0.85, "overshoot only when the measured return ratio (reflected / "
                                                 "shot) is at least this (a stiff scene)")
     stiff_rays: bool = setting(True, "in stiff scenes budget rays against the whole solution E/(1-lambda), "
@@ -175,3 +176,26 @@ class DivideConfig:
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def divide_flags_set(divide: DivideConfig) -> list[str]:
+    """The divided-run flags of ``divide`` set away from their defaults, as the user wrote them
+    (``--iterations 8``; ``mode`` is ``--boundary``: settings.add_divide_flags); the subscene count aside."""
+    default = DivideConfig()
+    flags = []
+    for f in dataclasses.fields(DivideConfig):
+        value = getattr(divide, f.name)
+        if f.name != "subscenes" and value != getattr(default, f.name):
+            flags.append(("--boundary" if f.name == "mode" else "--" + f.name.replace("_", "-")) + f" {value}")
+    return flags
+
+
+def unused_divide_note(divide: DivideConfig | None, run: str) -> str | None:
+    """The report's sentence when divided-run flags were given to a run that did not divide (``run``
+    says how it ran), or None: a flag that does not apply is reported, never silently dropped."""
+    flags = divide_flags_set(divide) if divide is not None else []
+    if not flags:
+        return None
+    return (f"{', '.join(flags)}: for divided runs only; this run {run}, so "
+            f"{'it was' if len(flags) == 1 else 'they were'} not used")
+

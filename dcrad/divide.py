@@ -53,7 +53,7 @@ from .rays import Tracer
 from .shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
 from .shooters import spatial_order
 from .snapshots import SnapshotStore
-from .solve import Snapshot, Solver, Stiffness, stiffness
+from .solver import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
     "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor",
@@ -192,7 +192,7 @@ class Subscene(Solver):
         return self.plan.stiffness if self.plan is not None else Stiffness.none()
 
     def ambient(self, st: Stiffness) -> np.ndarray:
-        """(3,) W/m^2: the job's ambient irradiance g = F * U (solve.py module doc).
+        """(3,) W/m^2: the job's ambient irradiance g = F * U (solver.py module doc).
 
         The estimate needs the whole job: F comes from the summed return tallies,
         and U = U_rest (the signed unshot and twin power the other subscenes held
@@ -420,6 +420,8 @@ class Subscene(Solver):
                 break  # the job's time limit, inside the barrier
             if self.interrupted:
                 break  # the job was cancelled
+            if plan is not None and plan.rays_left and rays >= plan.rays_left:
+                break  # its share of the job's ray budget
             if goal > 0 and self.local_residual() <= goal:
                 break
             if isinstance(self.sent, RayParcel) and len(self.sent) >= cap:
@@ -541,12 +543,17 @@ class BarrierPlan:
     rest      : (3,) W, signed unshot + twin power held by the *other* subscenes
     time_left : s until the job's time limit (0: none); doIterations stops after the
                 batch that passes it, so the limit holds inside a barrier, on any worker
+    rays_left : rays this subscene may trace before the next barrier, its share of what is left of
+                the job's --max-rays (0: no budget); doIterations stops after the batch that
+                reaches it, so the budget holds inside a barrier (the 20x20 office at --max-rays
+                3e7 traced 153M rays when only the barriers checked it)
     """
 
     stiffness: Stiffness
     rest: np.ndarray
     time_left: float = 0.0
     goal: float = 0.0  #: the share of its residual a subscene leaves this barrier (0: ``BARRIER_GOAL``)
+    rays_left: int = 0
 
 
 #: an adaptive barrier ends once a subscene's residual has fallen to this share of what it held
@@ -605,23 +612,35 @@ def crossing_share(previous: Ledger, led: Ledger, f: float) -> float:
 
 
 def barrier_plan(states: list[SubsceneState], config: SolverConfig, time_left: float = 0.0,
-                 goal: float = 0.0) -> dict:
+                 goal: float = 0.0, rays_left: int = 0) -> dict:
     """{cell: BarrierPlan} for the next doIterations (empty: plain shooting everywhere).
 
     Stiffness is a property of the whole job (light crosses the boundaries), so
     it is estimated from every subscene's return tallies and area at the
     barrier, exactly as a single solver estimates its own.  ``goal``: ``landing_goal``'s share.
+    ``rays_left``: what is left of the job's ray budget (0: none), shared out in proportion to the
+    power each subscene holds (its rays follow its power), at least one ray each.
     """
     area = sum(s.area for s in states)
     tallies = sum((s.tallies for s in states), np.zeros((4, 3)))
     st = stiffness(tallies, area, config)
+    budget = ray_shares(states, rays_left)
     if not st.active:
-        if time_left <= 0 and goal <= 0:
+        if time_left <= 0 and goal <= 0 and rays_left <= 0:
             return {}
-        return {s.cell: BarrierPlan(st, np.zeros(3), time_left, goal) for s in states}
+        return {s.cell: BarrierPlan(st, np.zeros(3), time_left, goal, budget[s.cell]) for s in states}
     held = {s.cell: s.ledger.unshot + s.ledger.in_flight for s in states}
     total = sum(held.values(), np.zeros(3))
-    return {cell: BarrierPlan(st, total - u, time_left, goal) for cell, u in held.items()}
+    return {cell: BarrierPlan(st, total - u, time_left, goal, budget[cell]) for cell, u in held.items()}
+
+
+def ray_shares(states: list[SubsceneState], rays_left: int) -> dict:
+    """{cell: rays} of ``rays_left`` (0: no budget, every share 0) by the power each subscene holds."""
+    if rays_left <= 0:
+        return {s.cell: 0 for s in states}
+    held = np.array([float(s.ledger.held().sum()) for s in states])
+    weight = held / held.sum() if held.sum() > 0 else np.full(len(states), 1.0 / max(len(states), 1))
+    return {s.cell: max(int(rays_left * w), 1) for s, w in zip(states, weight)}
 
 
 def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], config: SolverConfig,
@@ -687,7 +706,8 @@ def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], c
         left = config.time_limit - (time.perf_counter() - t0) if config.time_limit else 0.0
         landing = by_accuracy(config) and run.crossing >= 0
         goal = landing_goal(run.estimate, config.accuracy, run.crossing) if landing else 0.0
-        plan = barrier_plan(run.states, config, max(left, 1e-9) if config.time_limit else 0.0, goal)
+        budget = max(config.max_rays - run.snapshots[-1].rays, 1) if config.max_rays else 0
+        plan = barrier_plan(run.states, config, max(left, 1e-9) if config.time_limit else 0.0, goal, budget)
         run.goals.append(goal)
         previous = led
         if plan and next(iter(plan.values())).stiffness.active:

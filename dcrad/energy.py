@@ -10,16 +10,23 @@ A subscene's own books also carry what crossed its boundaries:
 cancel.
 
 The solver moves power between these accounts in float64; ``closure()``
-reports how far the books are from balancing (round-off only).
+reports how far the books are from balancing (round-off only).  ``escaped_light`` and
+``flipped_normals`` are the warnings two of the accounts raise (every report's).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-__all__ = ["ACCOUNTS", "MAGNITUDES", "Ledger", "rms_error"]
+from .config import TOL
+
+if TYPE_CHECKING:
+    from .patches import Patches
+
+__all__ = ["ACCOUNTS", "MAGNITUDES", "Ledger", "escaped_light", "flipped_normals", "rms_error"]
 
 
 ACCOUNTS = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported")
@@ -100,6 +107,34 @@ class Ledger:
         out["closure"] = self.closure()
         out["residual"] = self.residual()
         return out
+
+
+def escaped_light(ledger: Ledger, patches: Patches) -> list[str]:
+    """The escaped-light warning: most of the shot power left the scene without hitting
+    anything (above TOL.escape_warn), naming the (at most five) emitting objects."""
+    shot = float(ledger.emitted.sum() - ledger.unshot.sum())
+    escaped = float(ledger.escaped.sum())
+    if not (shot > 0 and escaped / shot > TOL.escape_warn):
+        return []
+    emitting = np.unique(patches.obj[patches.emission.max(axis=1) > 0])
+    names = [patches.names[i] for i in emitting[:5] if i < len(patches.names)]
+    return [f"{100 * escaped / shot:.1f}% of the shot power escaped the scene without hitting anything: "
+            f"do the lights ({', '.join(names) or '?'}) face away from it (emitters light their front, "
+            f"counter-clockwise side), or is the scene open?"]
+
+
+def flipped_normals(ledger: Ledger, back_by_obj: np.ndarray, names: list[str]) -> list[str]:
+    """The flipped-normals warning (back-face share of shot power above TOL.backface_warn),
+    naming the (at most five) objects whose back faces took the most power."""
+    shot = float(ledger.emitted.sum() - ledger.unshot.sum())
+    back = float(ledger.back_faces.sum())
+    if not (shot > 0 and back / shot > TOL.backface_warn):
+        return []
+    back_by_obj = np.asarray(back_by_obj, np.float64)
+    order = np.argsort(-back_by_obj)
+    worst = [names[i] for i in order[:5] if back_by_obj[i] > 0 and i < len(names)]
+    return [f"{100 * back / shot:.1f}% of the shot power hit back faces; normals are probably "
+            f"flipped on: {', '.join(worst) or '(no object recorded)'}"]
 
 
 def rms_error(b: np.ndarray, reference: np.ndarray, area: np.ndarray) -> float:

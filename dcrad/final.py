@@ -196,7 +196,10 @@ class FinalGather:
         self.direct, self.direct_a = direct, direct_a
         self.sum_a = np.zeros((len(self.rec), 3))  #: sum over half A's rays of what they read (W/m^2)
         self.sum_b = np.zeros((len(self.rec), 3))
-        self.per_half = 0  #: rays per receiver and half so far
+        self.per_half = 0  #: rays per receiver and half so far (a round that was stopped: not counted)
+        #: (len(rec),) rays per half each receiver has had: a stopped round leaves them unequal
+        self.counts = np.zeros(len(self.rec), np.int64)
+        self.stopped = False  #: a round was stopped before it reached every receiver
         #: area samples of the bright set per cosine sample (Bright; 0: cosine only)
         self.bright_share = BRIGHT_SHARE if bright is None else bright
         self.bright: Bright | None = None
@@ -204,9 +207,11 @@ class FinalGather:
             b = Bright(patches, every, self.radiosity - patches.emission)
             self.bright = b if len(b) else None
 
-    def _trace(self, half: int, rng: np.random.Generator, refl: np.ndarray) -> int:
+    def _trace(self, half: int, rng: np.random.Generator, refl: np.ndarray, should_stop=None) -> int:
         """``half`` more cosine rays per receiver and half into the sums, with the bright set's area
-        samples beside them (Bright); returns the rays traced."""
+        samples beside them (Bright); returns the rays traced.  ``should_stop()`` True between two
+        batches ends the round there (a round of the 34k-triangle office took minutes, and the first
+        Ctrl-C waited for it): the receivers it reached count their rays, the others keep what they had."""
         p, rec, bright = self.patches, self.rec, self.bright
         tracer = self.tracer
         assert tracer is not None, "a FinalGather without a tracer only combines sums (solution)"
@@ -215,6 +220,9 @@ class FinalGather:
         per = max(self.batch_rays // (2 * (half + m)), 1)
         traced = 0
         for lo in range(0, len(rec), per):
+            if lo and should_stop is not None and should_stop():
+                self.stopped = True
+                return traced
             rows = rec[lo:lo + per]
             k = len(rows)
             origins, dirs, owner, in_a = gather_rays(p, rows, half, rng)
@@ -237,6 +245,7 @@ class FinalGather:
             self._add(lo, k, hit, got, owner, in_a, weight, refl)
             if m and bright is not None:
                 traced += self._area(lo, rows, m, kappa, rng, refl, bright, tracer)
+            self.counts[lo:lo + k] += half
         self.per_half += half
         return traced
 
@@ -277,24 +286,33 @@ class FinalGather:
         self._add(lo, k, hit, seen, owner, in_a, weight, refl)
         return len(ok)
 
-    def round(self, rays: int, rng: np.random.Generator):
-        """(B (n,3), D (n,3), rays traced, mismatch (3,) W) after ``rays`` more rays per receiver."""
-        traced = self.add(rays, rng)
+    def round(self, rays: int, rng: np.random.Generator, should_stop=None):
+        """(B (n,3), D (n,3), rays traced, mismatch (3,) W) after ``rays`` more rays per receiver
+        (fewer where ``should_stop`` ended the round: ``_trace``)."""
+        traced = self.add(rays, rng, should_stop)
         b, d, mismatch = self.solution()
         return b, d, traced, mismatch
 
-    def add(self, rays: int, rng: np.random.Generator) -> int:
+    def add(self, rays: int, rng: np.random.Generator, should_stop=None) -> int:
         """``rays`` (even) more rays per receiver into the sums; returns the rays traced."""
-        return self._trace(max(rays // 2, 1), rng, self.radiosity - self.patches.emission)
+        return self._trace(max(rays // 2, 1), rng, self.radiosity - self.patches.emission, should_stop)
 
     def solution(self):
-        """(B (n,3), D (n,3), mismatch (3,) W) of the sums so far (sum_a, sum_b over per_half)."""
+        """(B (n,3), D (n,3), mismatch (3,) W) of the sums so far (sum_a, sum_b over each receiver's
+        rays).  Receivers a stopped first round did not reach keep the shot solution's B and D, and
+        the gathered ones keep their own reflected total (the scale below is over them alone)."""
+        if self.stopped and not (self.counts > 0).all():
+            return self._partial()
         p, rec = self.patches, self.rec
         refl = self.radiosity - p.emission
         area = p.area[rec][:, None]
         rho = p.rho[rec]
-        q_a = self.sum_a * area / self.per_half
-        q_b = self.sum_b * area / self.per_half
+        if self.stopped:  # every receiver gathered, some with fewer rays (a stopped later round)
+            q_a = self.sum_a * area / self.counts[:, None]
+            q_b = self.sum_b * area / self.counts[:, None]
+        else:
+            q_a = self.sum_a * area / self.per_half
+            q_b = self.sum_b * area / self.per_half
         q = 0.5 * (q_a + q_b)
         refl_rec = refl[rec]
         del refl
@@ -319,6 +337,17 @@ class FinalGather:
         del q_b
         d[rec] = rho * (dir_diff + scale * q_a) / area
         return b, d, mismatch
+
+    def _partial(self):
+        """``solution`` over the receivers reached so far; the others keep the shot B and D."""
+        done = self.counts > 0
+        whole = (self.rec, self.sum_a, self.sum_b, self.counts, self.stopped)
+        self.rec, self.sum_a, self.sum_b, self.counts = (self.rec[done], self.sum_a[done], self.sum_b[done],
+                                                         self.counts[done])
+        try:
+            return self.solution()
+        finally:
+            self.rec, self.sum_a, self.sum_b, self.counts, self.stopped = whole
 
 
 def final_gather(patches: Patches, tracer: Tracer, rays: int, rng: np.random.Generator, diff: np.ndarray,

@@ -21,7 +21,7 @@ at random, so the sampling noise of twin rays is counted but the noise the
 power in the bins already carries is not shot on as a difference).
 
 Bias: the light still unshot (and in twin buffers) will raise B.  The ambient
-irradiance g = q U / ((1 - lambda) A) of solve.py says how much reflected power
+irradiance g = q U / ((1 - lambda) A) of solver.py says how much reflected power
 is still to come; ``combine`` lays it out like the irradiance so far, smoothed over
 cells of about a mean free path (``NoiseTally.layout``): unshot light lands within a free path
 or so of the patches holding it, and by then it has been reflected at least once, so

@@ -15,7 +15,7 @@ from .accuracy import MAX_PASSES, pass_target
 from .config import SolverConfig
 from .energy import ACCOUNTS, MAGNITUDES
 from .noise import finite
-from .solve import Solver
+from .solver import Solver
 
 __all__ = ["blend", "solve_to_accuracy", "settle", "PASS_SEED", "PASS_GROWTH"]
 

@@ -22,7 +22,7 @@ import scenes
 
 from . import export, mesh, photometry, render
 from .accuracy import describe, noise_floor_note, resolve
-from .config import SolverConfig
+from .config import SolverConfig, unused_divide_note
 from .divide import build_subscenes, run_subscenes
 from .errors import ConfigError, SceneError
 from .passes import solve_to_accuracy
@@ -30,10 +30,10 @@ from .patches import Patches
 from .rays import Tracer
 from .report import TIMINGS, RunBooks, run_report, write_json
 from .scene import load_scene
-from .solve import GREY_CHOICE, Stats, stiff_choice
+from .solver import GREY_CHOICE, Stats, stiff_choice
 
-__all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "resolve_scene",
-           "divided_books", "finish_run"]
+__all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "solve_single",
+           "resolve_scene", "divided_books", "finish_run"]
 
 log = logging.getLogger("dcrad")
 
@@ -434,7 +434,7 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
                     channels=1 if patches.is_grey and len(patches) else 3, stiff=run.stiff)
 
 
-def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int = 640, height: int = 480,
+def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, width: int = 640, height: int = 480,
                extra: dict | None = None, tracer: Tracer | None = None, views: OutputViews | None = None,
                painter=None) -> dict:
     """Write every output and report.json for a finished run; return the report.
@@ -446,9 +446,10 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     ``outputs_s``.  ``tracer``: the solve's Embree scene over ``books.patches``, reused
     by the outputs (None: they build one); ``views``: the outputs' views built ahead
     (``output_views``; None: built here); ``painter``: who writes the pictures (``write_outputs``).
+    ``out`` None (``dcrad.solve`` without a folder): nothing is written; the report's ``outputs``
+    is empty and it has no ``photometry`` section (the outputs compute the lux).
     """
     settings = books.config.as_dict() | scene_values
-    out = Path(out)
     t0 = time.perf_counter()
     warnings = list(scene.warnings) + books.warnings()
     size = float(settings.get("patch_size_m") or 0.0)
@@ -460,8 +461,9 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     p.pool()  # clustered patches share one B (their estimate was read so: noise.py)
     sections: dict = {"mesh": {"element_size_m": size, "automatic": auto is not None, "elements": len(p),
                                "units": p.units, "objects": table}}
-    outputs = write_outputs(out, scene, books.patches, width, height, sections,
-                            float(settings.get("workplane_m") or 0.0), tracer=tracer, views=views, painter=painter)
+    outputs = {} if out is None else write_outputs(Path(out), scene, books.patches, width, height, sections,
+                                                   float(settings.get("workplane_m") or 0.0), tracer=tracer,
+                                                   views=views, painter=painter)
     books.timings["outputs_s"] = time.perf_counter() - t0
     timings = {k: float(books.timings.get(k, 0.0)) for k in TIMINGS} | books.timings
     report = run_report(scene, books, settings, timings, warnings, outputs)
@@ -469,8 +471,33 @@ def finish_run(out: Path, scene, books: RunBooks, scene_values: dict, width: int
     report["channels"], report["stiffness"] = books.channels, books.stiffness()
     report.update(sections)
     report.update(extra or {})
-    write_json(out / "report.json", report)
+    if out is not None:
+        write_json(Path(out) / "report.json", report)
     return report
+
+
+def solve_single(patches: Patches, config: SolverConfig, timings: dict | None = None, on_progress=None,
+                 should_stop=None, divide=None) -> tuple[RunBooks, Tracer]:
+    """Solve ``patches`` in this process as one subscene (no partition, no boundaries, no twins) to
+    ``config``'s target: the run's books and the Embree scene it traced, for the outputs to reuse.
+    ``timings`` (the load's) gains ``setup_s`` and ``solve_s``; ``divide``: the DivideConfig the
+    caller was given, whose divided-run flags the report says were not used.  ``solve_to`` (one
+    subscene) and ``dcrad.solve`` run this."""
+    t0 = time.perf_counter()
+    tracer = Tracer.mesh(patches)
+    t_setup = time.perf_counter() - t0
+    solver = solve_to_accuracy(patches, config, tracer, on_progress=on_progress, should_stop=should_stop)
+    solver.choices.append("one subscene: no partition, no boundaries, no twin buffers")
+    unused = unused_divide_note(divide, "was one subscene in this process")
+    if unused:
+        solver.choices.append(unused)
+        log.warning(unused)
+    solver.choices.append(describe(solver.config))
+    if solver.stats.stopped_by == "noise_floor":
+        solver.choices.append(noise_floor_note(solver.estimate(), solver.config.accuracy))
+    books = RunBooks.of_solver(solver, {**(timings or {}), "setup_s": t_setup, "solve_s": solver.stats.wall_seconds})
+    # the solver's tallies (noise, pool) go with it, before the outputs; the Embree scene is reused
+    return books, tracer
 
 
 class _DividedView:
@@ -538,16 +565,8 @@ def solve_to(
         timings = {"load_and_mesh_s": t_load, **phases, "setup_s": t_setup, "solve_s": run.wall_seconds}
         books = divided_books(run, patches, config, boundaries, part, divide, timings)
     else:
-        tracer = Tracer.mesh(patches)
-        t_setup = time.perf_counter() - t0
-        solver = solve_to_accuracy(patches, config, tracer, on_progress=on_progress, should_stop=should_stop)
-        solver.choices.append("one subscene: no partition, no boundaries, no twin buffers")
-        solver.choices.append(describe(solver.config))
-        if solver.stats.stopped_by == "noise_floor":
-            solver.choices.append(noise_floor_note(solver.estimate(), solver.config.accuracy))
-        timings = {"load_and_mesh_s": t_load, **phases, "setup_s": t_setup, "solve_s": solver.stats.wall_seconds}
-        books = RunBooks.of_solver(solver, timings)
-        del solver  # its tallies (noise, pool) go before the outputs; the Embree scene is reused
+        books, tracer = solve_single(patches, config, {"load_and_mesh_s": t_load, **phases}, on_progress,
+                                     should_stop, divide)
 
     # the settings as run: automatic ones (ray density, tol) resolved (accuracy.resolve)
     report = finish_run(out, scene, books, scene_settings(scene, size, scale, two_sided, workplane), width, height,

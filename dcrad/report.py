@@ -21,14 +21,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .config import TOL, SolverConfig
-from .energy import Ledger, rms_error
+from .config import SolverConfig
+from .energy import Ledger, escaped_light, flipped_normals, rms_error
 from .patches import Patches
 
-if TYPE_CHECKING:  # solve.py imports this module
-    from .solve import Stiffness
+if TYPE_CHECKING:  # an annotation only: importing this module does not load the solver
+    from .solver import Stiffness
 
-__all__ = ["RunBooks", "TIMINGS", "error_curve", "flipped_normals", "run_report", "write_json"]
+__all__ = ["RunBooks", "TIMINGS", "error_curve", "escaped_light", "flipped_normals", "run_report", "write_json"]
 
 #: the keys of every report's ``timings``
 TIMINGS = ("load_and_mesh_s", "setup_s", "solve_s", "outputs_s")
@@ -83,34 +83,6 @@ class RunBooks:
     def warnings(self) -> list[str]:
         return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
                                                                                                   self.patches)
-
-
-def escaped_light(ledger: Ledger, patches: Patches) -> list[str]:
-    """The escaped-light warning: most of the shot power left the scene without hitting
-    anything (above TOL.escape_warn), naming the (at most five) emitting objects."""
-    shot = float(ledger.emitted.sum() - ledger.unshot.sum())
-    escaped = float(ledger.escaped.sum())
-    if not (shot > 0 and escaped / shot > TOL.escape_warn):
-        return []
-    emitting = np.unique(patches.obj[patches.emission.max(axis=1) > 0])
-    names = [patches.names[i] for i in emitting[:5] if i < len(patches.names)]
-    return [f"{100 * escaped / shot:.1f}% of the shot power escaped the scene without hitting anything: "
-            f"do the lights ({', '.join(names) or '?'}) face away from it (emitters light their front, "
-            f"counter-clockwise side), or is the scene open?"]
-
-
-def flipped_normals(ledger: Ledger, back_by_obj: np.ndarray, names: list[str]) -> list[str]:
-    """The flipped-normals warning (back-face share of shot power above TOL.backface_warn),
-    naming the (at most five) objects whose back faces took the most power."""
-    shot = float(ledger.emitted.sum() - ledger.unshot.sum())
-    back = float(ledger.back_faces.sum())
-    if not (shot > 0 and back / shot > TOL.backface_warn):
-        return []
-    back_by_obj = np.asarray(back_by_obj, np.float64)
-    order = np.argsort(-back_by_obj)
-    worst = [names[i] for i in order[:5] if back_by_obj[i] > 0 and i < len(names)]
-    return [f"{100 * back / shot:.1f}% of the shot power hit back faces; normals are probably "
-            f"flipped on: {', '.join(worst) or '(no object recorded)'}"]
 
 
 def error_curve(snapshot_B: list, reference: np.ndarray, area: np.ndarray) -> list[float]:

@@ -13,7 +13,8 @@ with their defaults and help (``config.setting``) drive
 
 ``missing_on_wire`` names fields that have no twin in the message; ``to_pb`` and
 ``from_pb`` refuse such a dataclass, and tests/test_settings.py checks every field
-travels.
+travels.  They take the message class from their caller and use it by name
+(``Message`` below): the core does not import protobuf (tests/test_layers.py).
 """
 
 from __future__ import annotations
@@ -21,9 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-from typing import TYPE_CHECKING, Any, TypeVar
-
-from google.protobuf.message import Message
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from .config import BOUNDARY_MODES, DivideConfig
 from .errors import ConfigError
@@ -35,6 +34,18 @@ if TYPE_CHECKING:
     from _typeshed import DataclassInstance
 
 T = TypeVar("T", bound="DataclassInstance")  # a settings dataclass
+
+
+class Message(Protocol):
+    """What ``to_pb`` / ``from_pb`` use of a protobuf message (``google.protobuf.message.Message``):
+    its descriptor and field presence; its fields are set and read by name."""
+
+    DESCRIPTOR: Any
+
+    def HasField(self, field_name: str, /) -> bool: ...
+
+
+M = TypeVar("M", bound=Message)  # a protobuf message type
 
 
 def flag_name(name: str) -> str:
@@ -146,7 +157,7 @@ def _check(cls, message_cls) -> None:
                           f"add them to proto/dcrad/v1/dcrad.proto as optional fields and run `make proto`")
 
 
-def to_pb(obj, message_cls: type[Message], **extra: Any) -> Message:
+def to_pb(obj, message_cls: type[M], **extra: Any) -> M:
     """A ``message_cls`` with every field of the dataclass ``obj`` set (plus ``extra`` fields)."""
     _check(type(obj), message_cls)
     msg = message_cls(**extra)

@@ -58,7 +58,7 @@ from .patches import Patches
 from .rays import Tracer
 from .report import RunBooks
 from .shooters import spatial_order
-from .solve import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, budget_cut_note, fit_round, top_up
+from .solver import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, budget_cut_note, fit_round, top_up
 
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",

@@ -17,7 +17,7 @@ import numpy as np
 from .divide import BarrierPlan
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .errors import ExchangeError
-from .solve import Stiffness
+from .solver import Stiffness
 from .v1 import dcrad_pb2 as pb
 
 __all__ = [
@@ -149,13 +149,14 @@ def plan_fields(plan) -> dict:
     return {"ambient_scale": [float(x) for x in plan.stiffness.scale],
             "ambient_rest": [float(x) for x in plan.rest], "ray_factor": float(plan.stiffness.ray_factor),
             "return_ratio": float(plan.stiffness.ret), "time_left_s": float(plan.time_left),
-            "goal_share": float(plan.goal)}
+            "goal_share": float(plan.goal), "rays_left": int(plan.rays_left)}
 
 
 def plan_from_pb(req: pb.IterateRequest):
     """The BarrierPlan an IterateRequest carries, or None."""
 
-    if not req.ambient_scale and req.ray_factor <= 0 and req.time_left_s <= 0 and req.goal_share <= 0:
+    if (not req.ambient_scale and req.ray_factor <= 0 and req.time_left_s <= 0 and req.goal_share <= 0
+            and req.rays_left <= 0):
         return None
     scale = np.array(list(req.ambient_scale) or [0.0] * 3, np.float64)
     rest = np.array(list(req.ambient_rest) or [0.0] * 3, np.float64)
@@ -165,8 +166,10 @@ def plan_from_pb(req: pb.IterateRequest):
         raise ExchangeError(f"barrier plan: time_left_s must be finite and >= 0, not {req.time_left_s}")
     if not 0.0 <= req.goal_share < 1.0:  # NaN fails too
         raise ExchangeError(f"barrier plan: goal_share must be in [0, 1), not {req.goal_share}")
+    if req.rays_left < 0:
+        raise ExchangeError(f"barrier plan: rays_left must be >= 0, not {req.rays_left}")
     return BarrierPlan(Stiffness(scale, max(1.0, float(req.ray_factor)), float(req.return_ratio)), rest,
-                       float(req.time_left_s), float(req.goal_share))
+                       float(req.time_left_s), float(req.goal_share), int(req.rays_left))
 
 
 def safe_relpath(path: str) -> str:

@@ -280,3 +280,22 @@ def test_default_workers_on_a_small_scene_is_the_one_process_run(tmp_path):
     assert report["timings"]["load_s"] > 0  # the choice's loading is counted in the solve's timings
     assert np.array_equal(np.load(default / "radiosity.npz")["patch_B"], np.load(w0 / "radiosity.npz")["patch_B"])
     assert (default / "scene" / "cornell.obj").read_bytes() == (w0 / "scene" / "cornell.obj").read_bytes()
+
+
+def test_divided_run_flags_on_a_run_that_does_not_divide_are_reported(tmp_path):
+    """--iterations and --boundary set for a run in one subscene: the run is the plain one (the same B
+    bit for bit) and report.json's choices and stderr say the flags were not used (they were
+    accepted and silently ignored)."""
+    outs = {}
+    for flags in ((), ("--iterations", "8", "--boundary", "binned")):
+        out = tmp_path / ("plain" if not flags else "flagged")
+        r = run("solve", "cornell", "--workers", "0", *flags, "--out", out, "--tol", "0.05", "--width", "80",
+                "--height", "60")
+        assert r.returncode == 0, r.stderr
+        outs[flags] = (out, r.stderr)
+    (plain, _), (flagged, stderr) = outs.values()
+    note = "--iterations 8, --boundary binned: for divided runs only; this run was one subscene in this process"
+    assert any(c.startswith(note) for c in json.loads((flagged / "report.json").read_text())["choices"])
+    assert note in stderr
+    assert not any("divided runs only" in c for c in json.loads((plain / "report.json").read_text())["choices"])
+    assert np.array_equal(np.load(plain / "radiosity.npz")["patch_B"], np.load(flagged / "radiosity.npz")["patch_B"])

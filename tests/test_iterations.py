@@ -39,8 +39,10 @@ def test_fixed_iterations_are_n_batches_per_barrier_and_change_the_barrier_count
     for run, subs, n in ((one, subs1, 1), (eight, subs8, 8)):
         assert run.stopped_by == "ray_budget"
         assert all(s.local_target == 0.0 for s in subs)  # adaptive off
-        # each subscene ran exactly n batches at every barrier (there was always light to shoot)
-        assert [s.stats.batches for s in subs] == [n * run.barriers] * len(subs)
+        # each subscene ran exactly n batches at every barrier (there was always light to shoot) but
+        # the last, where its share of the ray budget ended it (divide.ray_shares), after at least one
+        assert all(n * (run.barriers - 1) + 1 <= s.stats.batches <= n * run.barriers for s in subs), \
+            [s.stats.batches for s in subs]
     # the same ray budget: eight batches a barrier need far fewer barriers than one
     assert eight.barriers * 4 <= one.barriers, (one.barriers, eight.barriers)
     assert not np.array_equal(b1, b8)  # the exchange schedule changed the run

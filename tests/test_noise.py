@@ -22,7 +22,7 @@ from dcrad.patches import Patches
 from dcrad.pipeline import prepare
 from dcrad.rays import Tracer
 from dcrad.shoot import deposit, landing
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 from scenes.furnace import furnace_box
 
 RHO = 0.5

@@ -23,7 +23,7 @@ from dcrad.scene import load_scene
 from dcrad.shoot import compact, patch_rays, trace
 from dcrad.shooters import ShooterPool, priority
 from dcrad.snapshots import SnapshotStore
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 
 
 def cornell(tmp_path, size: float = 0.08) -> Patches:

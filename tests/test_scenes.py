@@ -442,7 +442,7 @@ def test_two_sided_mixed_winding_furnace_identity(tmp_path, rho):
     faces).  One-sided, the same model loses light and warns about flipped normals."""
     from dcrad.config import SolverConfig
     from dcrad.scene import load_scene
-    from dcrad.solve import Solver
+    from dcrad.solver import Solver
     from scenes.variants import variant
 
     src = scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)
@@ -500,7 +500,7 @@ def test_furnace_illuminance_meets_the_identity(tmp_path):
     from dcrad import photometry
     from dcrad.config import SolverConfig
     from dcrad.scene import load_scene
-    from dcrad.solve import Solver
+    from dcrad.solver import Solver
 
     rho = 0.6
     p = load_scene(scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)).patches(0.15)
@@ -524,7 +524,7 @@ def test_auto_camera_stands_in_the_lit_room(tmp_path):
     from dcrad.config import SolverConfig
     from dcrad.render import auto_camera
     from dcrad.scene import load_scene
-    from dcrad.solve import Solver
+    from dcrad.solver import Solver
 
     for seed in range(20):  # a seed whose two rooms differ: one lit, one dark
         path = scenes.write_builtin("office", tmp_path / str(seed), rows=1, cols=2, lit_fraction=0.5, seed=seed)

@@ -166,10 +166,11 @@ def in_process(table, k: int, seed: int):
 
 def test_two_workers_share_a_job_bit_identically(office, table, tmp_path):
     """An accuracy job with the subscenes left to the coordinator runs shared on both workers:
-    the same B as the in-process shares, to the bit; the report says how it ran."""
+    the same B as the in-process shares, to the bit; the report says how it ran, and that the
+    divided-run flag it was given did not apply."""
     run, b_ref = in_process(table, 2, seed=3)
     with LocalCluster(workers=2, data=tmp_path) as cluster:
-        job = submit(cluster.address, office, {"accuracy": ACCURACY, "seed": 3})
+        job = submit(cluster.address, office, {"accuracy": ACCURACY, "seed": 3}, {"iterations": 8})
         progress = watch(cluster.address, job.job_id)
         files = fetch(cluster.address, job.job_id)
     final = progress[-1]
@@ -182,6 +183,7 @@ def test_two_workers_share_a_job_bit_identically(office, table, tmp_path):
     assert report["stats"]["rays"] == run.stats.rays
     assert report["ledger"]["closure"] < 1e-10
     assert any(c.startswith("shared run on 2 workers") for c in report["choices"])
+    assert any(c.startswith("--iterations 8: for divided runs only") for c in report["choices"])
     # the status page's barriers: direct, shoot, each gather round
     assert [p.barrier for p in progress if p.job.state == "running"][-1] == 2 + len(run.rounds)
 

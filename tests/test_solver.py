@@ -11,7 +11,7 @@ import pytest
 from dcrad.config import SolverConfig
 from dcrad.patches import Patches, subdivide
 from dcrad.rays import Tracer, embree_available
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 
 BACKENDS = ["embree", "numpy"] if embree_available() else ["numpy"]
 
@@ -361,7 +361,7 @@ def test_the_final_gather_keeps_to_the_time_limit(office_reference, monkeypatch)
     by the time limit and says so.  (The gather ran whole before: the office took 2.1 s under
     --time-limit 1.5.)  The plan itself is not coarsened for time (a run's seconds are not in
     proportion to its rays): the shooting is the one the 2% target plans."""
-    from dcrad import solve
+    from dcrad import solver as solve
 
     p, ref, ref_noise = office_reference
     p.reset()
@@ -380,8 +380,49 @@ def test_within_budget_cuts_a_round_to_what_the_budget_leaves():
     """r rays a receiver cost up to r (1 + BRIGHT_SHARE) rays: 1000 rays left for 10 receivers
     fit 83 (82, even); a round that fits, or no budget, is left alone (odd too); none left: 0."""
     from dcrad.final import BRIGHT_SHARE
-    from dcrad.solve import within_budget
+    from dcrad.solver import within_budget
 
     assert within_budget(124, 1000, 0, 10) == 82 == 2 * int(1000 / (10 * (1 + BRIGHT_SHARE)) / 2)
     assert within_budget(125, 0, 10, 100) == 125 and within_budget(125, 10**9, 10, 100) == 125
     assert within_budget(124, 3000, 0, 10) == 124 and within_budget(124, 10, 20, 10) == 0
+
+
+def test_a_stop_in_the_final_gather_ends_it_within_a_batch(tmp_path):
+    """Ctrl-C while the final gather runs: the round ends at the next batch, not after every receiver
+    (a 34k-triangle office's round ran on for minutes after SIGTERM).  The receivers it reached read
+    the gathered light, the others keep the shot solution, and the books still close."""
+    import scenes
+    from dcrad.pipeline import prepare
+
+    _, p, _ = prepare(scenes.write_builtin("cornell", tmp_path), 0.03)
+    solver = Solver(p, SolverConfig(seed=2, batch_rays=65536))
+    shot: dict = {}
+    final = solver.final
+
+    def spy(rays, should_stop=None):
+        shot.setdefault("b", p.radiosity.copy())
+        return final(rays, should_stop)
+
+    solver.final = spy  # type: ignore[method-assign]
+    asked = []
+
+    def should_stop() -> bool:
+        if solver.finalised:
+            asked.append(True)
+        return bool(asked)
+
+    solver.run(should_stop=should_stop)
+    assert solver.stats.stopped_by == "stopped" and "b" in shot
+    gather = solver._final
+    assert gather is not None and gather.stopped and len(asked) == 1  # asked once: between the first two batches
+    reached = gather.rec[gather.counts > 0]
+    untouched = gather.rec[gather.counts == 0]
+    assert 0 < len(reached) < len(gather.rec) and len(untouched)
+    np.testing.assert_array_equal(p.radiosity[untouched], shot["b"][untouched])
+    assert not np.array_equal(p.radiosity[reached], shot["b"][reached])
+    assert np.isfinite(p.radiosity).all() and (p.radiosity >= p.emission - 1e-12).all()
+    # the gathered receivers keep their reflected total (final.py), so the ledger's books still hold
+    refl = (p.area[:, None] * (p.radiosity - p.emission))[reached].sum(axis=0)
+    was = (p.area[:, None] * (shot["b"] - p.emission))[reached].sum(axis=0)
+    np.testing.assert_allclose(refl, was, rtol=1e-9)
+    assert any("stopped before its last round" in c for c in solver.choices)

@@ -20,7 +20,7 @@ from dcrad.divide import DivideConfig, solve_divided
 from dcrad.energy import rms_error
 from dcrad.patches import Patches
 from dcrad.scene import load_scene
-from dcrad.solve import Solver
+from dcrad.solver import Solver
 
 
 def finite(*arrays):
@@ -127,7 +127,7 @@ def test_stiffness_is_measured_as_the_return_ratio(tmp_path):
     assert np.allclose(st.scale, 1.0 / ((1 - lam) * p.area.sum()), rtol=1e-9)
     assert st.ray_factor == pytest.approx(np.sqrt((1 - cfg.overshoot_min_return) / (1 - lam.max())), rel=1e-9)
     # not stiff: no overshoot and the full ray budget
-    from dcrad.solve import stiffness
+    from dcrad.solver import stiffness
 
     mild = stiffness(np.array([shot, lost, landed, 0.5 * landed]), float(p.area.sum()), cfg)
     assert not mild.scale.any() and mild.ray_factor == 1.0

@@ -97,7 +97,7 @@ def test_barrier_plan_goal_share_round_trips_and_bad_shares_are_refused():
     import math
 
     from dcrad.divide import BarrierPlan
-    from dcrad.solve import Stiffness
+    from dcrad.solver import Stiffness
     from dcrad.wire import plan_fields, plan_from_pb
 
     plan = BarrierPlan(Stiffness.none(), np.zeros(3), 0.0, 0.179)
@@ -107,3 +107,17 @@ def test_barrier_plan_goal_share_round_trips_and_bad_shares_are_refused():
     for bad in (1.0, -0.1, math.nan):
         with pytest.raises(ExchangeError, match="goal_share"):
             plan_from_pb(pb.IterateRequest(batches=4, **(plan_fields(plan) | {"goal_share": bad})))
+
+
+def test_barrier_plan_ray_share_round_trips_and_a_negative_one_is_refused():
+    """A subscene's share of the job's ray budget reaches the worker (a plan with only a share is a
+    plan: the worker's doIterations must stop at it); a negative share is refused by name."""
+    from dcrad.divide import BarrierPlan
+    from dcrad.solver import Stiffness
+    from dcrad.wire import plan_fields, plan_from_pb
+
+    plan = BarrierPlan(Stiffness.none(), np.zeros(3), rays_left=123_456_789_012)
+    back = plan_from_pb(pb.IterateRequest(batches=4, **plan_fields(plan)))
+    assert back is not None and back.rays_left == 123_456_789_012 and back.goal == 0.0
+    with pytest.raises(ExchangeError, match="rays_left"):
+        plan_from_pb(pb.IterateRequest(batches=4, **(plan_fields(plan) | {"rays_left": -1})))

@@ -341,7 +341,7 @@ class SubsceneStatus(_message.Message):
     def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., ledger: _Optional[_Union[Ledger, _Mapping]] = ..., shots: _Optional[int] = ..., rays: _Optional[int] = ..., twin_entries: _Optional[int] = ..., twin_bytes: _Optional[int] = ..., compute_s: _Optional[float] = ..., area: _Optional[float] = ..., return_tallies: _Optional[_Iterable[float]] = ..., twins_delivered: _Optional[int] = ..., twin_blocks: _Optional[int] = ..., batches: _Optional[int] = ..., trace_s: _Optional[float] = ..., back_by_obj: _Optional[_Iterable[float]] = ..., noise: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class IterateRequest(_message.Message):
-    __slots__ = ("key", "batches", "ambient_scale", "ambient_rest", "ray_factor", "return_ratio", "time_left_s", "goal_share")
+    __slots__ = ("key", "batches", "ambient_scale", "ambient_rest", "ray_factor", "return_ratio", "time_left_s", "goal_share", "rays_left")
     KEY_FIELD_NUMBER: _ClassVar[int]
     BATCHES_FIELD_NUMBER: _ClassVar[int]
     AMBIENT_SCALE_FIELD_NUMBER: _ClassVar[int]
@@ -350,6 +350,7 @@ class IterateRequest(_message.Message):
     RETURN_RATIO_FIELD_NUMBER: _ClassVar[int]
     TIME_LEFT_S_FIELD_NUMBER: _ClassVar[int]
     GOAL_SHARE_FIELD_NUMBER: _ClassVar[int]
+    RAYS_LEFT_FIELD_NUMBER: _ClassVar[int]
     key: SubsceneKey
     batches: int
     ambient_scale: _containers.RepeatedScalarFieldContainer[float]
@@ -358,7 +359,8 @@ class IterateRequest(_message.Message):
     return_ratio: float
     time_left_s: float
     goal_share: float
-    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., batches: _Optional[int] = ..., ambient_scale: _Optional[_Iterable[float]] = ..., ambient_rest: _Optional[_Iterable[float]] = ..., ray_factor: _Optional[float] = ..., return_ratio: _Optional[float] = ..., time_left_s: _Optional[float] = ..., goal_share: _Optional[float] = ...) -> None: ...
+    rays_left: int
+    def __init__(self, key: _Optional[_Union[SubsceneKey, _Mapping]] = ..., batches: _Optional[int] = ..., ambient_scale: _Optional[_Iterable[float]] = ..., ambient_rest: _Optional[_Iterable[float]] = ..., ray_factor: _Optional[float] = ..., return_ratio: _Optional[float] = ..., time_left_s: _Optional[float] = ..., goal_share: _Optional[float] = ..., rays_left: _Optional[int] = ...) -> None: ...
 
 class IterateReply(_message.Message):
     __slots__ = ("array", "status")

@@ -69,12 +69,11 @@ from .direct import (
     rescale_to_landed,
     shadow_rays_for,
 )
-from .energy import Ledger
+from .energy import Ledger, escaped_light, flipped_normals
 from .final import BRIGHT_SHARE, FinalGather
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from .patches import Patches
 from .rays import Tracer
-from .report import escaped_light, flipped_normals
 from .shoot import deposit, landing, patch_rays, ray_offset, trace
 from .shooters import ShooterPool, pool_size, spatial_order
 from .snapshots import SnapshotStore
@@ -655,10 +654,11 @@ class Solver:
         """True while a final gather is planned and has not run."""
         return bool(self.final_rays) and self.direct_light is not None and not self.finalised
 
-    def final(self, rays: int) -> int:
+    def final(self, rays: int, should_stop=None) -> int:
         """A round of the final gather of the indirect light, ``rays`` rays per receiver (final.py);
         return the rays traced (0: not done: the direct light was shot, or nothing to gather).
-        The first round reads the shot solution; later rounds add rays reading the same one."""
+        The first round reads the shot solution; later rounds add rays reading the same one.
+        ``should_stop()`` True ends the round between two batches (FinalGather._trace)."""
         if self.direct_light is None or rays < 2 or not self.patches.rho.any():
             return 0
         self.finalised = True
@@ -666,7 +666,7 @@ class Solver:
         if self._final is None:
             self._final = FinalGather(self.patches, self.tracer, self.noise.diff, *self.direct_light,
                                       batch_rays=self.config.batch_rays)
-        b, d, traced, mismatch = self._final.round(rays + rays % 2, self.rng)
+        b, d, traced, mismatch = self._final.round(rays + rays % 2, self.rng, should_stop)
         self.stats.trace_seconds += time.perf_counter() - t0
         self.patches.radiosity, self.noise.diff = b, d
         self.noise.resync(self.patches)
@@ -675,10 +675,12 @@ class Solver:
         self.choices.append(f"final gather of the indirect light: {2 * self._final.per_half} rays per receiving "
                             f"patch read the shot solution's reflected light (final.py): the ledger is the "
                             f"shooting's and B keeps its reflected total; the indirect light landed differs from "
-                            f"the shot by {float(mismatch.sum()) / max(absorbed, 1e-300):.2%} of the absorbed power")
+                            f"the shot by {float(mismatch.sum()) / max(absorbed, 1e-300):.2%} of the absorbed power"
+                            + ("; stopped before its last round reached every receiver (those keep fewer "
+                               "rays, or the shot solution)" if self._final.stopped else ""))
         return self.counted(0, traced)
 
-    def finish(self) -> None:
+    def finish(self, should_stop=None) -> None:
         """The final gather and its top-up rounds in accuracy mode: while the estimate is above the
         target, more rays per receiver for (estimate / target)^2 x FINAL_MARGIN of them in all (as if
         the noise were all the gather's sampling), at most FINAL_ROUNDS rounds and 8x the first round's rays."""
@@ -690,9 +692,9 @@ class Solver:
         if by:
             self.budget_cut = by
             self.choices.append(budget_cut_note(cut, first, by, cfg, self.stats.rays))
-        self.final(cut)
+        self.final(cut, should_stop)
         for _ in range(FINAL_ROUNDS - 1):
-            if not by_accuracy(cfg) or self._final is None:
+            if not by_accuracy(cfg) or self._final is None or self._final.stopped:
                 return
             err = self.target_error()
             if err <= cfg.accuracy:
@@ -704,7 +706,7 @@ class Solver:
                 return
             if cfg.time_limit and self.elapsed() >= cfg.time_limit:
                 return
-            self.final(more)
+            self.final(more, should_stop)
 
     # == the loop ==================================================================
     def elapsed(self) -> float:
@@ -823,8 +825,10 @@ class Solver:
             if on_progress is not None:
                 on_progress(self)
         if (reason == "final_gather" or (self.final_pending() and reason == "tolerance")) and not self.defer_final:
-            self.finish()
-            if by_accuracy(self.config):
+            self.finish(should_stop)
+            if self._final is not None and self._final.stopped:
+                reason = "stopped"
+            elif by_accuracy(self.config):
                 met = self.target_error() <= self.config.accuracy
                 reason = "accuracy" if met else self.budget_cut or "noise_floor"
         self.recount()
