@@ -191,14 +191,14 @@ def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
 
 
 def _note_choice(out: Path, choice: str | None) -> None:
-    """Add the default's choice of workers to report.json's ``choices``."""
+    """Add the default's choice of workers to report.json's ``choices`` (choices.py: code ``workers``)."""
     import json
 
     path = out / "report.json"
     if choice is None or not path.exists():
         return
     report = json.loads(path.read_text())
-    report["choices"] = [choice] + list(report.get("choices", []))
+    report["choices"] = [{"code": "workers", "text": choice}] + list(report.get("choices", []))
     path.write_text(json.dumps(report, indent=1))
 
 

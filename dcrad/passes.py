@@ -12,6 +12,7 @@ blend is a solution whose books close and whose estimate is that of the blend.
 from __future__ import annotations
 
 from .accuracy import MAX_PASSES, pass_target
+from .choices import Choice, Choices
 from .config import SolverConfig
 from .energy import ACCOUNTS, MAGNITUDES
 from .noise import finite
@@ -65,8 +66,10 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
     while solver.stats.stopped_by == "noise_floor" and passes < MAX_PASSES:
         est, cfg, done = solver.estimate(), solver.config, solver.stats
         saved, weight = _save(solver), 1.0 / max(est.rms, 1e-300) ** 2
-        earlier = [c if c.startswith("pass ") else f"pass {passes}: {c}" for c in solver.choices
-                   if c.startswith(("direct light", "pass "))]
+        # the pass's direct-light entries become "pass" entries (labelled already after the first pass)
+        earlier = Choices(c if c.code == "pass" else
+                          Choice("pass", c.text if passes > 1 else f"pass {passes}: {c.text}")
+                          for c in solver.choices.of("direct", "pass"))
         # a pass that ended just above the target needs little from the next: its own target can come
         # out above 1 (a closed cube: 1.27), which is no accuracy at all; half the light is plenty
         target = min(pass_target(est.rms_refl, goal), 0.5)
@@ -78,7 +81,7 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         want = max((est.noise_refl / target) ** 2 * 1.1, 1.0)
         rpp = cfg.rays_per_power * min(want, PASS_GROWTH)
         if want > PASS_GROWTH:
-            earlier.append(f"pass {passes + 1}: the target would want {want:.3g}x the density of pass {passes}; "
+            earlier.add("pass", f"pass {passes + 1}: the target would want {want:.3g}x the density of pass {passes}; "
                            f"held to {PASS_GROWTH:g}x (passes.PASS_GROWTH)")
         patches.reset()
         # its own random streams: a pass with the same seed would repeat the first one's rays
@@ -91,9 +94,9 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         blend(solver, saved, weight, 1.0 / max(now.rms, 1e-300) ** 2)
         passes += 1
         solver.config = solver.config.replace(accuracy=goal, seed=config.seed)
-        solver.choices = earlier + [c if not c.startswith("direct light") else f"pass {passes}: {c}"
-                                    for c in solver.choices]
-        solver.choices.append(
+        solver.choices = Choices(earlier + [c if c.code != "direct" else Choice("direct", f"pass {passes}: {c.text}")
+                                            for c in solver.choices])
+        solver.choices.add("passes",
             f"accuracy pass {passes}: the passes before ended on their noise floor ({est.rms_refl:.4f} of the "
             f"reflected light at {cfg.rays_per_power:.3g} rays per emitted power); an independent pass at "
             f"{rpp:.3g} reached {now.rms_refl:.4f} and the two were blended by inverse variance")
@@ -114,6 +117,6 @@ def settle(solver) -> None:
     if not solver.noise.pooled:
         return
     kept, undone = solver.noise.settle(solver.patches)
-    solver.choices.append(f"clusters: {kept} keep one B (their patches agree within four times their noise's "
+    solver.choices.add("clusters", f"clusters: {kept} keep one B (their patches agree within four times their noise's "
                           f"spread; the rest of their spread is in the estimate's bias), {undone} undone (their "
                           f"patches' light differs beyond their noise: each keeps its own B)")

@@ -22,6 +22,7 @@ import scenes
 
 from . import export, mesh, photometry, render
 from .accuracy import describe, noise_floor_note, resolve
+from .choices import Choice, Choices
 from .config import SolverConfig, unused_divide_note
 from .divide import build_subscenes, run_subscenes
 from .errors import ConfigError, SceneError
@@ -393,27 +394,27 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
     back = np.zeros(max(len(patches.names), 1))
     for s in states:
         back[: len(s.back_by_obj)] += s.back_by_obj[: len(back)]
-    choices = []
+    choices = Choices()
     if patches.is_grey and len(patches):
-        choices.append(GREY_CHOICE)
+        choices.add("grey", GREY_CHOICE)
     delivered = sum(s.twins_delivered for s in states)
     blocks = sum(s.twin_blocks for s in states)
     # dense: a sent and a pending buffer for each crossing of every portal cell and bin
     dense = dense_twin_bytes(boundaries) if divide.mode == "binned" else None
     if divide.mode == "binned":
-        choices.append(f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
+        choices.add("subscenes", f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
                        f"against {dense} bytes dense (sent and pending, every portal cell, bin "
                        f"and crossing)")
         if config.adaptive_bins and delivered:
-            choices.append(f"directional resolution where the energy is: {delivered} twin entries "
+            choices.add("subscenes", f"directional resolution where the energy is: {delivered} twin entries "
                            f"arrived, kept as {blocks} direction blocks (light weaker than one ray "
                            f"shares coarser bins)")
     else:
-        choices.append(f"boundaries forward each crossing ray exactly (no direction bins, which blur light "
+        choices.add("subscenes", f"boundaries forward each crossing ray exactly (no direction bins, which blur light "
                        f"where a boundary crosses open space): at most {run.max_twin_bytes} bytes of rays "
                        f"held at a barrier")
     if run.stiff is not None:
-        choices.append(stiff_choice(run.stiff, config) + " (for the whole divided job)")
+        choices.add("stiff", stiff_choice(run.stiff, config) + " (for the whole divided job)")
     divided = {"subscenes": len(states), "boundaries": len(boundaries), "barriers": run.barriers,
                "mode": divide.mode, "iterations": divide.iterations,
                "barrier_batches": f"adaptive, at most {divide.max_iterations}" if divide.adaptive
@@ -423,11 +424,13 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
                "partition": part.as_dict(), "barrier_goals": [round(g, 4) for g in run.goals]}
     landed = [g for g in run.goals if g > 0]
     if landed:
-        choices.append(f"{len(landed)} barrier(s) aimed at the target: each subscene left {landed[-1]:.2f} of its "
+        choices.add("barriers",
+                    f"{len(landed)} barrier(s) aimed at the target: each subscene left {landed[-1]:.2f} of its "
                        f"residual, not a quarter, for the estimate to land just below it (divide.landing_goal)")
-    choices.append(describe(config))
+    choices.add("accuracy", describe(config))
     if run.stopped_by == "noise_floor":
-        choices.append(noise_floor_note(run.estimate, config.accuracy) + "; a divided run shoots its direct "
+        choices.add("noise_floor",
+                    noise_floor_note(run.estimate, config.accuracy) + "; a divided run shoots its direct "
                        "light, where one process (--workers 0) or a shared run gathers it")
     return RunBooks(patches, config, run.ledger, stats, list(run.snapshots), run.snapshot_B, back,
                     choices, dict(timings or {}), divided, estimate=run.estimate,
@@ -457,7 +460,7 @@ def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, wid
     p = books.patches
     front = ~p.is_back
     table = mesh.mesh_table(p.names, p.obj[front], p.source[front], p.cluster[front], len(scene.faces))
-    books.choices.insert(0, mesh.mesh_note(size, auto[1] if auto else None, table))
+    books.choices.insert(0, Choice("mesh", mesh.mesh_note(size, auto[1] if auto else None, table)))
     p.pool()  # clustered patches share one B (their estimate was read so: noise.py)
     sections: dict = {"mesh": {"element_size_m": size, "automatic": auto is not None, "elements": len(p),
                                "units": p.units, "objects": table}}
@@ -487,14 +490,14 @@ def solve_single(patches: Patches, config: SolverConfig, timings: dict | None = 
     tracer = Tracer.mesh(patches)
     t_setup = time.perf_counter() - t0
     solver = solve_to_accuracy(patches, config, tracer, on_progress=on_progress, should_stop=should_stop)
-    solver.choices.append("one subscene: no partition, no boundaries, no twin buffers")
+    solver.choices.add("subscenes", "one subscene: no partition, no boundaries, no twin buffers")
     unused = unused_divide_note(divide, "was one subscene in this process")
     if unused:
-        solver.choices.append(unused)
+        solver.choices.add("unused_flags", unused)
         log.warning(unused)
-    solver.choices.append(describe(solver.config))
+    solver.choices.add("accuracy", describe(solver.config))
     if solver.stats.stopped_by == "noise_floor":
-        solver.choices.append(noise_floor_note(solver.estimate(), solver.config.accuracy))
+        solver.choices.add("noise_floor", noise_floor_note(solver.estimate(), solver.config.accuracy))
     books = RunBooks.of_solver(solver, {**(timings or {}), "setup_s": t_setup, "solve_s": solver.stats.wall_seconds})
     # the solver's tallies (noise, pool) go with it, before the outputs; the Embree scene is reused
     return books, tracer

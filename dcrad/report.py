@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .choices import Choices
 from .config import SolverConfig
 from .energy import Ledger, escaped_light, flipped_normals, rms_error
 from .patches import Patches
@@ -42,7 +43,7 @@ class RunBooks:
     stats     : ``solve.Stats`` (shots, rays, batches, barriers, trace and wall s, stopped_by)
     snapshots : ``solve.Snapshot`` list, with B of each in ``snapshot_B``
     back_by_obj : (n_objects,) W that hit back faces, by object index
-    choices   : what the run left out or changed because the scene did not need it
+    choices   : what the run chose and why (choices.Choices: a code and a sentence each)
     divided   : the report's ``divided`` section (None: one subscene)
     """
 
@@ -53,7 +54,7 @@ class RunBooks:
     snapshots: list = field(default_factory=list)
     snapshot_B: list = field(default_factory=list)
     back_by_obj: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    choices: list[str] = field(default_factory=list)
+    choices: Choices = field(default_factory=Choices)
     timings: dict[str, float] = field(default_factory=dict)
     divided: dict | None = None
     #: the error estimate at the end (``noise.Estimate``; None: not available)
@@ -67,7 +68,7 @@ class RunBooks:
     def of_solver(cls, solver, timings: dict[str, float] | None = None) -> "RunBooks":
         """The books of a single ``Solver`` run."""
         return cls(solver.patches, solver.config, solver.ledger, solver.stats, list(solver.snapshots),
-                   solver.snapshot_B, solver.back_by_obj.copy(), list(solver.choices), dict(timings or {}),
+                   solver.snapshot_B, solver.back_by_obj.copy(), Choices(solver.choices), dict(timings or {}),
                    estimate=solver.estimate(per_triangle=True), channels=solver.channels, stiff=solver.stiff)
 
     def stiffness(self) -> dict | None:
@@ -148,7 +149,7 @@ def run_report(scene, solver, settings: dict, timings: dict, warnings: list[str]
         "trace_share": stats["trace_seconds"] / wall,
         "timings": timings,
         "warnings": list(warnings),
-        "choices": list(getattr(solver, "choices", [])),
+        "choices": Choices(getattr(solver, "choices", [])).as_json(),
         "snapshots": snaps,
         "snapshot_note": (
             "rms_estimate (= error_rms; error_refl over RMS(B - E)): the live error estimate, "

@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .accuracy import by_accuracy, final_plan, resolve
+from .choices import Choice, Choices
 from .config import SolverConfig
 from .direct import MAX_ANALYTIC_RECEIVERS, AnalyticGather, DirectTally, merge, shared_rate
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
@@ -181,7 +182,7 @@ class Replica:
     wall_seconds: float
     stopped_by: str
     final_rays: int = 0  #: the final plan's gather rays per receiver (0: no final gather pending)
-    choices: list[str] = field(default_factory=list)
+    choices: Choices = field(default_factory=Choices)
     stiff: Stiffness | None = None
     estimate: dict = field(default_factory=dict)  #: its own estimate (noise.Estimate.as_dict)
 
@@ -190,7 +191,7 @@ class Replica:
     def to_arrays(self) -> dict:
         meta = {"shots": self.shots, "rays": self.rays, "batches": self.batches,
                 "trace_seconds": self.trace_seconds, "wall_seconds": self.wall_seconds,
-                "stopped_by": self.stopped_by, "final_rays": self.final_rays, "choices": self.choices,
+                "stopped_by": self.stopped_by, "final_rays": self.final_rays, "choices": self.choices.as_json(),
                 "estimate": self.estimate,
                 "stiff": None if self.stiff is None else {"scale": [float(x) for x in self.stiff.scale],
                                                           "ray_factor": self.stiff.ray_factor,
@@ -214,7 +215,7 @@ class Replica:
                    back_by_obj=np.asarray(arrays["back_by_obj"], np.float64), shots=int(meta["shots"]),
                    rays=int(meta["rays"]), batches=int(meta["batches"]), trace_seconds=float(meta["trace_seconds"]),
                    wall_seconds=float(meta["wall_seconds"]), stopped_by=str(meta["stopped_by"]),
-                   final_rays=int(meta["final_rays"]), choices=list(meta["choices"]), stiff=stiff,
+                   final_rays=int(meta["final_rays"]), choices=Choices.from_json(meta["choices"]), stiff=stiff,
                    estimate=dict(meta["estimate"]))
 
 
@@ -237,7 +238,7 @@ def run_replica(patches: Patches, config: SolverConfig, tracer: Tracer, direct: 
     return Replica(patches.radiosity.copy(), patches.unshot.copy(), solver.noise.diff.copy(),
                    solver.noise.unshot.copy(), full, half_a, solver.tallies.copy(), solver.ledger.copy(),
                    solver.back_by_obj.copy(), st.shots, st.rays, st.batches, st.trace_seconds, st.wall_seconds,
-                   st.stopped_by, solver.final_rays if solver.final_pending() else 0, list(solver.choices),
+                   st.stopped_by, solver.final_rays if solver.final_pending() else 0, Choices(solver.choices),
                    solver.stiff, {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
                                   for k, v in est.as_dict().items()})
 
@@ -328,7 +329,7 @@ class SharedRun:
     seconds: dict
     snapshots: list[Snapshot]
     snapshot_B: list[np.ndarray]
-    choices: list[str]
+    choices: Choices
 
 
 class LocalShares:
@@ -420,7 +421,8 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     receivers = int(patches.rho.any(axis=1).sum())
 
     more, budget_cut = fit_round(first + first % 2, cfg, shot_rays, time.perf_counter() - t0, receivers)
-    cut = [budget_cut_note(more, first, budget_cut, cfg, shot_rays)] if budget_cut and not stopped else []
+    cut = ([Choice("budget", budget_cut_note(more, first, budget_cut, cfg, shot_rays))]
+           if budget_cut and not stopped else [])
     if more >= 2 and stopped == "" and receivers:
         fg = FinalGather(patches, None, shot.diff, shot.direct, shot.direct_a, cfg.batch_rays)
         pos = [np.searchsorted(fg.rec, rows) for rows in parts]
@@ -459,8 +461,8 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
         snapshots.append(Snapshot(wall, stats.shots, rays, shot.ledger.residual(), shot.ledger.closure(),
                                   finite(est.rms), finite(est.rms_refl)))
         snapshot_B.append(patches.radiosity.copy())
-    choices = [c for c in replicas[0].choices if not c.startswith(("direct light gathered", "reflected light shot",
-                                                                    "final gather"))] + cut
+    # the job's gather and plan are told by shared_books, not by a replica's own
+    choices = Choices([c for c in replicas[0].choices if c.code not in ("direct", "plan", "final_gather")] + cut)
     return SharedRun(k, shot.ledger, shot.tallies, est, stats, replicas, direct_rays, gather_rays, rounds, seconds,
                      snapshots, snapshot_B, choices)
 
@@ -481,9 +483,9 @@ def shared_books(run: SharedRun, patches: Patches, config: SolverConfig, timings
     rep = run.replicas
     back = np.sum([r.back_by_obj for r in rep], axis=0) / len(rep)
     stiff = next((r.stiff for r in rep if r.stiff is not None), None)
-    choices = list(run.choices)
+    choices = Choices(run.choices)
     s = run.seconds
-    choices.append(
+    choices.add("shared",
         f"shared run on {run.k} workers ({where}), no subscenes: the final plan (exact direct gather, coarse "
         f"shooting, final gather) reads the whole scene's light, so the work is split, not space (share.py): "
         f"each worker gathered the exact direct light of 1/{run.k} of the receivers ({run.direct_rays} shadow rays, "
@@ -493,9 +495,9 @@ def shared_books(run: SharedRun, patches: Patches, config: SolverConfig, timings
         f"{s.get('gather_s', 0.0):.1f} s)")
     from .accuracy import describe, noise_floor_note  # noqa: PLC0415
 
-    choices.append(describe(cfg))
+    choices.add("accuracy", describe(cfg))
     if run.stats.stopped_by == "noise_floor":
-        choices.append(noise_floor_note(run.estimate, cfg.accuracy))
+        choices.add("noise_floor", noise_floor_note(run.estimate, cfg.accuracy))
     shared = {"workers": run.k, **{k: round(v, 3) for k, v in s.items()}, "direct_rays": run.direct_rays,
               "replica_rays": [r.rays for r in rep], "gather_rays": run.gather_rays, "gather_rounds": run.rounds,
               "replica_estimates_refl": [r.estimate.get("rms_refl") for r in rep],

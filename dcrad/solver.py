@@ -53,6 +53,7 @@ import numpy as np
 
 from .accuracy import FINAL_BIAS_SHARE, by_accuracy, final_plan, noise_floor, resolve
 from .arrays import colsum, put_rows, rowsum, take_rows
+from .choices import Choice, Choices
 from .config import SolverConfig
 from .direct import (
     GATHER_MARGIN,
@@ -156,10 +157,10 @@ class Solver:
         #: W below which a shooter is not worth a ray (round-off of the overshoot arithmetic)
         self._negligible = 1e-12 * max(emitted, 1e-300)
         #: what this run leaves out because the scene does not need it (for the report)
-        self.choices: list[str] = []
+        self.choices = Choices()  #: what the run chose and why (choices.py)
         self.channels = 1 if patches.is_grey and len(patches) else 3
         if self.channels == 1:
-            self.choices.append(GREY_CHOICE)
+            self.choices.add("grey", GREY_CHOICE)
         #: the stiffness estimate of the last batch that overshot or stretched rays (None: never)
         self.stiff: Stiffness | None = None
         self.snapshots: list[Snapshot] = []
@@ -222,9 +223,9 @@ class Solver:
             self.stiff = st
         return st
 
-    def stiffness_choice(self) -> list[str]:
+    def stiffness_choice(self) -> list[Choice]:
         """The report's line on stiffness, when it changed how this run shot."""
-        return [stiff_choice(self.stiff, self.config)] if self.stiff is not None else []
+        return [Choice("stiff", stiff_choice(self.stiff, self.config))] if self.stiff is not None else []
 
     def ambient(self, st: "Stiffness") -> np.ndarray:
         """(3,) W/m^2: the irradiance still to arrive, as if spread uniformly (see module doc)."""
@@ -435,7 +436,8 @@ class Solver:
         n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
         lights = analytic_lights(p, emitters, power, n_receivers, rows)
         if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
-            self.choices.append(f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
+            self.choices.add(
+                "direct", f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
                                 f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
         plan = final_plan(cfg, len(p)) if lights is not None else None
         if plan is not None:
@@ -495,7 +497,7 @@ class Solver:
             # the gather's shadow rays would take most of the ray budget (the office at --max-rays
             # 1e5: 611k rays, all of them the gather's; at 16 shadow rays, its least under a budget,
             # still 304k): the emitters are shot, within it (``fit_budget`` sets their density)
-            self.choices.append(f"direct light shot, not gathered: {shadow} shadow rays for each of "
+            self.choices.add("direct", f"direct light shot, not gathered: {shadow} shadow rays for each of "
                                 f"{len(receivers)} receiving patches are more than {DIRECT_BUDGET_SHARE:.0%} of "
                                 f"the ray budget ({max(budget, 0)} of --max-rays {cfg.max_rays})")
             return 0
@@ -530,7 +532,8 @@ class Solver:
         # 13x noisier than shooting: the light is shot instead
         equal = shadow * ratio * ratio * len(receivers)
         if plan is not None and preset is None and equal > cfg.rays_per_power:
-            self.choices.append(f"direct light shot, not gathered, and no final gather: the gather's {shadow} shadow "
+            self.choices.add(
+                "direct", f"direct light shot, not gathered, and no final gather: the gather's {shadow} shadow "
                                 f"rays per receiving patch gave {ratio:.2f}x the noise of shooting; matching it would "
                                 f"take about {equal:.3g} shadow rays, more than the {cfg.rays_per_power:.3g} rays "
                                 f"shooting the emitted power once takes (its {gathered.rays} shadow rays are counted)")
@@ -538,7 +541,7 @@ class Solver:
             return self.counted(0, gathered.rays)
         if plan is None and not ratio < GATHER_MARGIN:
             on = f"on a pilot of {len(pilot)} patches" if lights is None else "on every patch"
-            self.choices.append(f"direct light shot, not gathered: {how} {shadow} shadow rays per patch gave "
+            self.choices.add("direct", f"direct light shot, not gathered: {how} {shadow} shadow rays per patch gave "
                                 f"{ratio:.2f}x the noise shooting the emitters would, {on} (its "
                                 f"{gathered.rays} shadow rays are counted)")
             return self.counted(0, gathered.rays)
@@ -558,13 +561,14 @@ class Solver:
         self.noise.shot(emitters)
         if tally is None:  # the gather missed light the rays found: keep the rays' own result
             self.commit(None, shot, shot=power)
-            self.choices.append("direct light shot: the gather found no light where the emitters' rays landed some")
+            self.choices.add(
+                "direct", "direct light shot: the gather found no light where the emitters' rays landed some")
             return self.counted(len(emitters), shadow_counted + int(counts.sum()))
         self.commit(None, tally, shot=power)
         full, half_a = np.zeros((len(p), 3)), np.zeros((len(p), 3))
         full[tally.hit], half_a[tally.hit] = tally.received, tally.received_a
         self.direct_light = (full, half_a)
-        self.choices.append(f"direct light gathered ({how} {shadow} shadow rays per receiving patch, "
+        self.choices.add("direct", f"direct light gathered ({how} {shadow} shadow rays per receiving patch, "
                             f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
                             f"the emitters book how much of it lands, escapes or meets back faces")
         if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
@@ -572,7 +576,7 @@ class Solver:
             self.power_per_ray = float(self.ledger.emitted.sum()) / (plan.shoot_rays_per_power * self.shoot_share)
             # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
             self.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * self.shoot_share))))
-            self.choices.append(f"reflected light shot at {plan.shoot_rays_per_power * self.shoot_share:.3g} rays "
+            self.choices.add("plan", f"reflected light shot at {plan.shoot_rays_per_power * self.shoot_share:.3g} rays "
                                 f"per emitted power "
                                 f"(at least {plan.min_rays} rays a shot), then gathered again with "
                                 f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
@@ -644,7 +648,8 @@ class Solver:
             takes = f"{shoot:.3g} shooting" + (f", {gather:.3g} in the final gather" if pending else "")
             gives = (f"shooting at {float(self.ledger.emitted.sum()) / self.power_per_ray:.3g} rays per emitted "
                      f"power" + (f", {self.final_rays} gather rays per receiving patch" if pending else ""))
-            self.choices.append(f"ray budget: --max-rays {cfg.max_rays} leaves about {left} rays{share}, and the plan "
+            self.choices.add(
+                "budget", f"ray budget: --max-rays {cfg.max_rays} leaves about {left} rays{share}, and the plan "
                                 f"would take about {shoot + gather:.3g} ({takes}): its density is coarsened to "
                                 f"{f:.2g}x ({gives}) to fit")
         if pending:
@@ -671,8 +676,8 @@ class Solver:
         self.patches.radiosity, self.noise.diff = b, d
         self.noise.resync(self.patches)
         absorbed = float(self.ledger.absorbed.sum())
-        self.choices = [c for c in self.choices if not c.startswith("final gather")]
-        self.choices.append(f"final gather of the indirect light: {2 * self._final.per_half} rays per receiving "
+        self.choices.set(
+            "final_gather", f"final gather of the indirect light: {2 * self._final.per_half} rays per receiving "
                             f"patch read the shot solution's reflected light (final.py): the ledger is the "
                             f"shooting's and B keeps its reflected total; the indirect light landed differs from "
                             f"the shot by {float(mismatch.sum()) / max(absorbed, 1e-300):.2%} of the absorbed power"
@@ -691,7 +696,7 @@ class Solver:
         cut, by = fit_round(first, cfg, self.stats.rays, self.elapsed(), receivers)
         if by:
             self.budget_cut = by
-            self.choices.append(budget_cut_note(cut, first, by, cfg, self.stats.rays))
+            self.choices.add("budget", budget_cut_note(cut, first, by, cfg, self.stats.rays))
         self.final(cut, should_stop)
         for _ in range(FINAL_ROUNDS - 1):
             if not by_accuracy(cfg) or self._final is None or self._final.stopped:
@@ -834,7 +839,8 @@ class Solver:
         self.recount()
         self.snapshot(force=True)
         self.stats.stopped_by = reason
-        self.choices = [c for c in self.choices if not c.startswith("stiff scene")] + self.stiffness_choice()
+        self.choices.drop("stiff")
+        self.choices.extend(self.stiffness_choice())
         self.stats.wall_seconds = self.elapsed()
         return self.stats
 

@@ -38,6 +38,10 @@ def _check_outputs(out: Path) -> tuple[dict, dict]:
     report = json.loads((out / "report.json").read_text())
     # the ledger closes to round-off on every built-in scene
     assert report["ledger"]["closure"] < 1e-9
+    # every choice says what it is about by a known code (choices.py), beside its sentence
+    from dcrad.choices import CODES
+    assert report["choices"] and all(set(c) == {"code", "text"} and c["code"] in CODES and c["text"]
+                                     for c in report["choices"]), report["choices"]
     assert report["residual"] <= 0.05 and report["stats"]["stopped_by"] == "tolerance"
     assert report["snapshots"][0]["rays"] == 0 and len(report["snapshots"]) >= 3
 
@@ -276,7 +280,9 @@ def test_default_workers_on_a_small_scene_is_the_one_process_run(tmp_path):
         outs[flags] = out
     default, w0 = outs[()], outs[("--workers", "0")]
     report = json.loads((default / "report.json").read_text())
-    assert report["choices"][0].startswith("solved in this process") and report["divided"] is None
+    first = report["choices"][0]
+    assert first["code"] == "workers" and first["text"].startswith("solved in this process")
+    assert report["divided"] is None
     assert report["timings"]["load_s"] > 0  # the choice's loading is counted in the solve's timings
     assert np.array_equal(np.load(default / "radiosity.npz")["patch_B"], np.load(w0 / "radiosity.npz")["patch_B"])
     assert (default / "scene" / "cornell.obj").read_bytes() == (w0 / "scene" / "cornell.obj").read_bytes()
@@ -295,7 +301,8 @@ def test_divided_run_flags_on_a_run_that_does_not_divide_are_reported(tmp_path):
         outs[flags] = (out, r.stderr)
     (plain, _), (flagged, stderr) = outs.values()
     note = "--iterations 8, --boundary binned: for divided runs only; this run was one subscene in this process"
-    assert any(c.startswith(note) for c in json.loads((flagged / "report.json").read_text())["choices"])
+    assert any(c["code"] == "unused_flags" and c["text"].startswith(note)
+               for c in json.loads((flagged / "report.json").read_text())["choices"])
     assert note in stderr
-    assert not any("divided runs only" in c for c in json.loads((plain / "report.json").read_text())["choices"])
+    assert not any(c["code"] == "unused_flags" for c in json.loads((plain / "report.json").read_text())["choices"])
     assert np.array_equal(np.load(plain / "radiosity.npz")["patch_B"], np.load(flagged / "radiosity.npz")["patch_B"])

@@ -350,7 +350,8 @@ def test_compose_stack(docker_engine, build_inputs, embedded, name, tmp_path):
         out3 = tmp_path / "job3"
         client.fetch(stack.address, job3, out3)
         report3 = json.loads((out3 / "report.json").read_text())
-        assert any(c.startswith("resumed from barrier") for c in report3["choices"]), report3["choices"]
+        assert any(c["code"] == "resumed" and c["text"].startswith("resumed from barrier")
+                   for c in report3["choices"]), report3["choices"]
         assert np.array_equal(patch_b(out3), patch_b(out2))  # resumed: the same numbers, bit for bit
         out1c = tmp_path / "job1-after-restart"
         client.fetch(stack.address, job1, out1c)

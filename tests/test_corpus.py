@@ -37,4 +37,4 @@ def test_a_real_model_solves_at_defaults(tmp_path, name):
     assert report["error"]["rms_refl"] <= SolverConfig().accuracy
     b = np.load(tmp_path / "radiosity.npz")["B"]
     assert np.isfinite(b).all() and b.max() > 0
-    assert any(c.startswith("mesh: element size") for c in report["choices"])
+    assert any(c["code"] == "mesh" and c["text"].startswith("mesh: element size") for c in report["choices"])

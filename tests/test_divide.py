@@ -349,7 +349,8 @@ def test_a_divided_run_on_its_noise_floor_says_so(tmp_path):
     from dcrad.accuracy import noise_floor
     assert noise_floor(run.estimate, 0.03) or run.snapshots[-1].rays == run.snapshots[-2].rays
     books = divided_books(run, p, cfg, boundaries, part, divide)
-    assert any(c.startswith("stopped on the noise floor") and "--workers 0" in c for c in books.choices)
+    assert any(c.text.startswith("stopped on the noise floor") and "--workers 0" in c.text
+               for c in books.choices.of("noise_floor"))
 
 
 def test_a_divided_run_keeps_its_ray_budget_inside_a_barrier(tmp_path):

@@ -89,7 +89,7 @@ def test_coordinator_sigkill_mid_job_resumes_bit_identical(tmp_path):
         files = fetch(cluster.address, job.job_id)
     log = "".join(p.read_text() for p in cluster.data.glob("coordinator-*.log"))
     report = json.loads(bytes(files["report.json"]))
-    resumed = [c for c in report["choices"] if c.startswith("resumed from barrier")]
+    resumed = [c["text"] for c in report["choices"] if c["code"] == "resumed"]
     assert resumed and f"barrier {at_kill}" in resumed[0], report["choices"]
     assert f"resumes from barrier {at_kill}" in log
     assert final.barrier == ref_final.barrier

@@ -269,7 +269,7 @@ def test_final_gather_keeps_the_books_and_its_estimate_is_honest(uniform_furnace
         patches.reset()
         s = solve_to_accuracy(patches, SolverConfig(seed=13, accuracy=0.05), tracer)
         runs.append(patches.radiosity.copy())
-    assert any(c.startswith("final gather") for c in s.choices), s.choices
+    assert any(c.text.startswith("final gather") for c in s.choices.of("final_gather")), s.choices
     assert s.stats.stopped_by == "accuracy"
     est = s.estimate()
     err, err_refl = measured(patches)

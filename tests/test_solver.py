@@ -302,7 +302,7 @@ def test_a_ray_budget_below_the_direct_gather_is_kept(tmp_path, budget):
     st = s.run()
     assert st.stopped_by == "ray_budget"
     assert 0.9 * budget <= st.rays <= budget + cfg.max_rays_per_shot
-    shot = [c for c in s.choices if c.startswith("direct light shot, not gathered")]
+    shot = [c.text for c in s.choices.of("direct") if c.text.startswith("direct light shot, not gathered")]
     assert bool(shot) == (budget < 611_000) and s.ledger.closure() < 1e-10
 
 
@@ -342,7 +342,7 @@ def test_a_ray_budget_coarsens_the_whole_plan_to_fit(office_reference, budget, m
     cfg = SolverConfig(accuracy=0.02, max_rays=budget, seed=2)
     s = Solver(p, cfg)
     st = s.run()
-    assert any(c.startswith("ray budget: --max-rays") and "coarsened" in c for c in s.choices)
+    assert any(c.text.startswith("ray budget: --max-rays") and "coarsened" in c.text for c in s.choices.of("budget"))
     assert 0.9 * budget <= st.rays <= budget and st.stopped_by == "ray_budget" and s._final is not None
     est, meas = s.estimate(), _measured_refl(p, ref, ref_noise)
     assert est.bias_refl < cfg.accuracy  # the light is all but shot (it was 74% of the reflected light at 1e6)
@@ -369,10 +369,10 @@ def test_the_final_gather_keeps_to_the_time_limit(office_reference, monkeypatch)
     monkeypatch.setattr(solve, "clock", lambda: s.stats.rays * 1e-6)
     st = s.run()
     assert st.stopped_by == "time_limit" and s.elapsed() <= 3.0
-    line = next(c for c in s.choices if c.startswith("time limit: the final gather cut"))
+    line = next(c.text for c in s.choices.of("budget") if c.text.startswith("time limit: the final gather cut"))
     cut, planned = (int(x) for x in re.findall(r"cut to (\d+) rays .*planned (\d+)\)", line)[0])
     assert planned == 124 and 2 <= cut < planned and s._final is not None and 2 * s._final.per_half >= cut
-    assert not any("coarsened" in c for c in s.choices)
+    assert not any("coarsened" in c.text for c in s.choices)
     assert _measured_refl(p, ref, ref_noise) < 0.05  # 3.1% on this clock's 3M rays; the whole plan: 1.4%
 
 
@@ -425,4 +425,4 @@ def test_a_stop_in_the_final_gather_ends_it_within_a_batch(tmp_path):
     refl = (p.area[:, None] * (p.radiosity - p.emission))[reached].sum(axis=0)
     was = (p.area[:, None] * (shot["b"] - p.emission))[reached].sum(axis=0)
     np.testing.assert_allclose(refl, was, rtol=1e-9)
-    assert any("stopped before its last round" in c for c in solver.choices)
+    assert any("stopped before its last round" in c.text for c in solver.choices.of("final_gather"))
