@@ -703,7 +703,7 @@ class JobManager:
                 "checkpoints": {k: v for k, v in writer.stats.items() if k != "per_barrier"},
             }
             if resume is not None:
-                books.choices.append(f"resumed from barrier {resume.barrier} after a coordinator restart "
+                books.choices.add("resumed", f"resumed from barrier {resume.barrier} after a coordinator restart "
                                      f"(checkpoints on disk)")
             job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
             for h in handles:  # the workers free the subscenes now, not after the outputs
@@ -789,7 +789,7 @@ class JobManager:
         unused = unused_divide_note(from_pb(DivideConfig, spec.divide, subscenes=1),
                                     f"was shared by {len(shares.used)} worker(s), each holding the whole scene")
         if unused:
-            books.choices.append(unused)
+            books.choices.add("unused_flags", unused)
         shared |= {"workers_used": sorted(shares.used), "reassigned": shares.reassigned,
                    "bytes_sent": shares.bytes_sent, "display_seconds": display.seconds,
                    "display_cpu_seconds": display.cpu_seconds}
