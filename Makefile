@@ -49,6 +49,7 @@ BENCH := \
 	"bench_direct.py --scenes office" \
 	"bench_corpus.py --models office2" \
 	"bench_bias.py cornell" \
+	"bench_stop.py office --accuracy 0.02" \
 	"bench_setup.py --scene office:rows=4,cols=4 --patch-size 0.25 --reps 1" \
 	"bench_coordinator_memory.py -- $(BIN)/dcrad solve office --workers 2 --accuracy 0.1 --out out/bench-coordinator-memory"
 bench: install

@@ -67,7 +67,7 @@ __all__ = ["DirectTally", "gather_direct", "shadow_rays_for", "noise_against_sho
            "rescale_to_landed", "merge", "AnalyticGather", "shared_rate", "PILOT_SHARE", "GATHER_MARGIN",
            "gather_analytic", "light_pairs", "pair_form_factors", "MAX_PAIRS", "MAX_ANALYTIC_RECEIVERS",
            "analytic_lights", "light_lists",
-           "LightLists", "FAR_BOUND"]
+           "LightLists", "FAR_BOUND", "GatherStopped"]
 
 #: share of the receivers (at random) gathered first to decide whether gathering beats shooting
 PILOT_SHARE = 0.125
@@ -138,14 +138,25 @@ def _importance(xc: np.ndarray, nx: np.ndarray, centre, spread, normal, phi_g) -
     return (1.0 - POWER_SHARE) * w + POWER_SHARE * (phi_g / phi_g.sum())[None, :]
 
 
+class GatherStopped(Exception):
+    """A stop request (``should_stop``) ended a direct gather between two of its batches: no tally.
+    The 20x20 office's gather takes tens of seconds, and the first Ctrl-C waited for it."""
+
+
+def _poll(should_stop) -> None:
+    if should_stop is not None and should_stop():
+        raise GatherStopped
+
+
 def gather_direct(patches: Patches, tracer: Tracer, emitters: np.ndarray, power: np.ndarray, shadow_rays: int,
                   rng: np.random.Generator, offset: float, batch_rays: int = 262144,
-                  receivers: np.ndarray | None = None) -> DirectTally:
+                  receivers: np.ndarray | None = None, should_stop=None) -> DirectTally:
     """Gather the direct light of ``emitters`` (e,) shooting ``power`` (e,3) W onto every patch with rho > 0.
 
     shadow_rays: S per receiver (even: two halves of S/2); offset: m the ends of a
     shadow ray are lifted off their surfaces.  Traces in chunks of ``batch_rays``.
     receivers: the patches to gather for (sorted, distinct; default every patch with rho > 0).
+    should_stop: polled between chunks; True raises GatherStopped.
     Each sample picks a light group (an emitting object) with the receiver's own
     probabilities (``_importance``: lights in other rooms get few samples), then an
     emitter patch of the group in proportion to power, then a point on it; the
@@ -175,6 +186,8 @@ def gather_direct(patches: Patches, tracer: Tracer, emitters: np.ndarray, power:
     v = patches.vertices
     per_chunk = max(min(batch_rays, 8_000_000 // n_groups) // s, 1)
     for lo in range(0, len(receivers), per_chunk):
+        if lo:
+            _poll(should_stop)
         rec = receivers[lo:lo + per_chunk]
         k = len(rec)
         # 5-D stratified samples: 2 on the receiver, 1 for the emitter, 2 on the emitter;
@@ -780,7 +793,7 @@ def _member(keys: np.ndarray, mine: np.ndarray) -> np.ndarray:
 
 def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, power: np.ndarray,
                     lights: Lights, shadow_rays: int, rng: np.random.Generator, offset: float,
-                    batch_rays: int = 262144, receivers: np.ndarray | None = None) -> DirectTally:
+                    batch_rays: int = 262144, receivers: np.ndarray | None = None, should_stop=None) -> DirectTally:
     """Direct light from exact unoccluded form factors times the visible share shadow rays find.
 
     For each receiver i and light L that can see each other, the unoccluded form
@@ -807,8 +820,8 @@ def gather_analytic(patches: Patches, tracer: Tracer, emitters: np.ndarray, powe
     has its own points and rays, so the noise estimate sees its noise.
     """
     gather = AnalyticGather(patches, tracer, emitters, power, lights, shadow_rays, rng, offset, batch_rays,
-                            receivers)
-    return gather.finish()
+                            receivers, should_stop)
+    return gather.finish(should_stop=should_stop)
 
 
 class AnalyticGather:
@@ -824,7 +837,7 @@ class AnalyticGather:
 
     def __init__(self, patches: Patches, tracer: Tracer, emitters: np.ndarray, power: np.ndarray,
                  lights: Lights, shadow_rays: int, rng: np.random.Generator, offset: float,
-                 batch_rays: int = 262144, receivers: np.ndarray | None = None):
+                 batch_rays: int = 262144, receivers: np.ndarray | None = None, should_stop=None):
         self.need, self.weight = 0.0, 0.0
         self.empty: DirectTally | None = None  #: the result when there is nothing to gather (no pairs)
         if receivers is None:
@@ -858,6 +871,8 @@ class AnalyticGather:
         tallies: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         code_type = np.int32 if int(np.prod(grid.dims)) * len(lights) < 2**31 else np.int64
         for (c0, c1), seed in zip(runs, seeds):
+            if c0:
+                _poll(should_stop)
             slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
                                                       cells=(c0, c1))
             rec = receivers[slot]
@@ -901,8 +916,9 @@ class AnalyticGather:
         """Its own rate of extra rays per unit weight (``need / weight``)."""
         return self.need / self.weight if self.weight > 0 else 0.0
 
-    def finish(self, rate: float | None = None) -> DirectTally:
-        """The gather pass at ``rate`` (None: its own) and the tally (once: it frees the pilot's state)."""
+    def finish(self, rate: float | None = None, should_stop=None) -> DirectTally:
+        """The gather pass at ``rate`` (None: its own) and the tally (once: it frees the pilot's state).
+        ``should_stop``: polled between runs of cells; True raises GatherStopped."""
         if self.empty is not None:
             return self.empty
         rate = self.rate if rate is None else rate
@@ -911,6 +927,8 @@ class AnalyticGather:
         lists, runs, seeds, grid, halves, rays = self.lists, self.runs, self.seeds, self.grid, self.halves, self.rays
         self.lists = self.grid = self.halves = None  # type: ignore[assignment]
         for (c0, c1), seed in zip(runs, seeds):
+            if c0:
+                _poll(should_stop)
             slot, light, present, inv_q = light_pairs(patches, lights, receivers, np.random.default_rng(seed), lists,
                                                       cells=(c0, c1))
             if len(slot) == 0:

@@ -59,7 +59,7 @@ from .patches import Patches
 from .rays import Tracer
 from .report import RunBooks
 from .shooters import spatial_order
-from .solver import FINAL_ROUNDS, Snapshot, Solver, Stats, Stiffness, budget_cut_note, fit_round, top_up
+from .solver import FINAL_ROUNDS, ReplicaRole, Snapshot, Solver, Stats, Stiffness, budget_cut_note, fit_round, top_up
 
 __all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
@@ -225,12 +225,10 @@ def run_replica(patches: Patches, config: SolverConfig, tracer: Tracer, direct: 
     (module doc, step 2).  ``patches`` is reset first (its B and dB are the replica's afterwards)."""
     patches.reset()
     solver = Solver(patches, replica_config(config, k, index, patches.units), tracer=tracer)
-    solver.preset_direct = direct
-    solver.replicas, solver.shared_noise = k, shared_noise(patches, direct)
-    solver.shoot_share = 1.0 / max(k, 1)
-    solver.defer_final = True
     job_plan = final_plan(resolve(config, patches.units), len(patches))
-    solver.planned_final_rays = job_plan.final_rays if job_plan is not None else 0
+    solver.role = ReplicaRole(preset_direct=direct, replicas=k, shared_noise=shared_noise(patches, direct),
+                              shoot_share=1.0 / max(k, 1), defer_final=True,
+                              planned_final_rays=job_plan.final_rays if job_plan is not None else 0)
     solver.run(should_stop=should_stop)
     st, est = solver.stats, solver.estimate()
     n = len(patches)

@@ -61,6 +61,7 @@ from .direct import (
     PILOT_SHARE,
     AnalyticGather,
     DirectTally,
+    GatherStopped,
     analytic_lights,
     gather_analytic,
     gather_direct,
@@ -79,7 +80,7 @@ from .shoot import deposit, landing, patch_rays, ray_offset, trace
 from .shooters import ShooterPool, pool_size, spatial_order
 from .snapshots import SnapshotStore
 
-__all__ = ["Solver", "Snapshot", "Stiffness", "stiffness", "solve", "top_up", "FINAL_ROUNDS"]
+__all__ = ["Solver", "ReplicaRole", "Snapshot", "Stiffness", "stiffness", "solve", "top_up", "FINAL_ROUNDS"]
 
 #: batches between exact recounts of the ledger's unshot sums; in between they are
 #: kept incrementally from the rows each batch touched (shooters and rows hit)
@@ -94,6 +95,8 @@ FINAL_ROUNDS = 3
 FINAL_MARGIN = 1.25
 
 #: the report's line for a scene whose rho and E are grey
+GATHER_STOPPED = ("direct gather stopped before it finished (a stop request): nothing of it is booked, the "
+                  "emitters' light is left unshot")
 GREY_CHOICE = ("grey scene (every rho and E has equal channels): "
                "one colour channel is tallied and copied to the other two")
 
@@ -126,6 +129,29 @@ class Stats:
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
+
+
+@dataclass
+class ReplicaRole:
+    """How a shared run's replica (share.py) differs from a run of its own; the defaults are a run of
+    its own.  Kept apart from the solver's state so that only share.run_replica sets it."""
+
+    #: the direct gather of every receiver, done by the shared run's workers (None: gather here)
+    preset_direct: DirectTally | None = None
+    #: ``replicas`` k of them will be averaged, and ``shared_noise`` (W^2/m^4) is the noise mean
+    #: square they share (their direct light, gathered once): the run stops by the error the
+    #: average will have (``Solver.target_error``)
+    replicas: int = 1
+    shared_noise: float = 0.0
+    #: share of the final plan's shooting density this run shoots at: k replicas shoot 1/k each (the
+    #: final gathers read their average's noise), 1 otherwise
+    shoot_share: float = 1.0
+    #: stop where the final gather would start (``stopped_by: final_gather``): the replicas leave it
+    #: to the shared run, which gathers their average split by receivers
+    defer_final: bool = False
+    #: the job's final gather rays per receiver (its own plan is at 1/k of the density; the replicas
+    #: plan, and a budget coarsens, the job's gather: share.run_replica); 0: its own plan's
+    planned_final_rays: int = 0
 
 
 class Solver:
@@ -188,24 +214,10 @@ class Solver:
         #: the final gather has run (it runs once, when the shooting has shot nearly all light)
         self.finalised = False
         self._final: FinalGather | None = None
-        #: the direct gather of every receiver, done by a shared run's workers (share.py; None: gather here)
-        self.preset_direct: DirectTally | None = None
-        #: a shared run's replica (share.py): ``replicas`` k of them will be averaged, and
-        #: ``shared_noise`` (W^2/m^4) is the noise mean square they share (their direct light, gathered
-        #: once): the run stops by the error the average will have (``target_error``)
-        self.replicas = 1
-        self.shared_noise = 0.0
-        #: share of the final plan's shooting density this run shoots at: a shared run's k replicas
-        #: shoot 1/k each (the final gathers read their average's noise), 1 otherwise
-        self.shoot_share = 1.0
-        #: stop where the final gather would start (``stopped_by: final_gather``): a shared run's
-        #: replicas leave it to the shared run, which gathers their average split by receivers
-        self.defer_final = False
+        #: what a shared run's replica does differently (``ReplicaRole``; the default: a run of its own)
+        self.role = ReplicaRole()
         #: rays kept for the final gather under --max-rays (``fit_budget``): the shooting stops short of them
         self.gather_reserve = 0
-        #: a shared run's replica: the job's final gather rays per receiver (its own plan is at 1/k of
-        #: the density; the replicas plan, and a budget coarsens, the job's gather: share.run_replica)
-        self.planned_final_rays = 0
         self._fitted = False  #: ``fit_budget`` has run
         self._fresh_at = -FRESH_EVERY  #: the batch of the last resync ``stop_reason`` asked for
         self._t0 = clock()
@@ -428,7 +440,7 @@ class Solver:
         amounts = p.unshot[emitters].copy()
         power = amounts * p.area[emitters, None]
         shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
-        if self.preset_direct is not None:  # gathered by a shared run's workers: exact, with a final plan
+        if self.role.preset_direct is not None:  # gathered by a shared run's workers: exact, with a final plan
             plan = final_plan(cfg, len(p))
             if plan is None:
                 raise ValueError("a preset direct gather needs accuracy mode with the direct light gathered")
@@ -464,8 +476,10 @@ class Solver:
         return AnalyticGather(self.patches, self.tracer, emitters, power, lights, shadow, rng,
                               ray_offset(self.patches), self.config.batch_rays, rows)
 
-    def gather(self) -> int:
+    def gather(self, should_stop=None) -> int:
         """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.
+        ``should_stop()`` True between two of the gather's batches abandons it: nothing is booked,
+        the emitters keep their light unshot (``run`` then stops).
 
         The emitters' power is spent: a modest number of their ordinary rays books
         how much lands, escapes or meets back faces (exactly, as shooting would),
@@ -489,7 +503,7 @@ class Solver:
         if got is None:
             return 0
         emitters, amounts, power, shadow, lights, plan = got
-        preset = self.preset_direct
+        preset = self.role.preset_direct
         # a pilot on a random share of the receivers decides whether gathering beats shooting
         receivers = np.flatnonzero(p.rho.any(axis=1))
         budget = cfg.max_rays - self.stats.rays if cfg.max_rays else 0
@@ -509,15 +523,21 @@ class Solver:
         def gather_for(rows: np.ndarray):
             if lights is not None:
                 return gather_analytic(p, self.tracer, emitters, power, lights, shadow, self.rng, off,
-                                       cfg.batch_rays, rows)
-            return gather_direct(p, self.tracer, emitters, power, shadow, self.rng, off, cfg.batch_rays, rows)
+                                       cfg.batch_rays, rows, should_stop)
+            return gather_direct(p, self.tracer, emitters, power, shadow, self.rng, off, cfg.batch_rays, rows,
+                                 should_stop)
 
         how = (f"exact form factors to {len(lights)} light polygon(s), visibility from" if lights is not None
                else "exact form factors (the shared run's direct shares), visibility from" if preset is not None
                else "next-event estimation,")
         # the exact form factors gather every receiver at once (their pilot finds penumbrae by
         # neighbourhood: on a sparse share of the receivers it would find few), then compare
-        gathered = preset if preset is not None else gather_for(pilot if lights is None else receivers)
+        try:
+            gathered = preset if preset is not None else gather_for(pilot if lights is None else receivers)
+        except GatherStopped:
+            self.stats.trace_seconds += time.perf_counter() - t0
+            self.choices.add("direct", GATHER_STOPPED)
+            return 0
         shadow_counted = 0 if preset is not None else gathered.rays
         self.stats.trace_seconds += time.perf_counter() - t0
         quiet, loud = noise_against_shooting(p, gathered, power, self.power_per_ray)
@@ -548,7 +568,12 @@ class Solver:
         if lights is None and preset is None:
             t0 = time.perf_counter()
             rest = np.setdiff1d(receivers, pilot, assume_unique=True)
-            gathered = merge(gathered, gather_for(rest), p)
+            try:
+                gathered = merge(gathered, gather_for(rest), p)
+            except GatherStopped:
+                self.stats.trace_seconds += time.perf_counter() - t0
+                self.choices.add("direct", GATHER_STOPPED)
+                return self.counted(0, gathered.rays)
             self.stats.trace_seconds += time.perf_counter() - t0
         # the emitters' own rays: how much of their power lands (the books), not where
         total = power.sum(axis=1)
@@ -572,11 +597,12 @@ class Solver:
                             f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
                             f"the emitters book how much of it lands, escapes or meets back faces")
         if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
-            self.final_rays = self.planned_final_rays or plan.final_rays
-            self.power_per_ray = float(self.ledger.emitted.sum()) / (plan.shoot_rays_per_power * self.shoot_share)
+            self.final_rays = self.role.planned_final_rays or plan.final_rays
+            self.power_per_ray = float(self.ledger.emitted.sum()) / (plan.shoot_rays_per_power * self.role.shoot_share)
             # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
-            self.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * self.shoot_share))))
-            self.choices.add("plan", f"reflected light shot at {plan.shoot_rays_per_power * self.shoot_share:.3g} rays "
+            self.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * self.role.shoot_share))))
+            density = plan.shoot_rays_per_power * self.role.shoot_share
+            self.choices.add("plan", f"reflected light shot at {density:.3g} rays "
                                 f"per emitted power "
                                 f"(at least {plan.min_rays} rays a shot), then gathered again with "
                                 f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
@@ -599,9 +625,9 @@ class Solver:
         """Rays a final plan's shooting and gather would take from here (before the direct gather:
         the reflections of the emitted power are what will be shot)."""
         everything, emitted = self.with_reflections(self.ledger.emitted)
-        ppr = emitted / (plan.shoot_rays_per_power * self.shoot_share)
+        ppr = emitted / (plan.shoot_rays_per_power * self.role.shoot_share)
         shoot = (everything - emitted) / max(ppr, 1e-300)
-        return shoot + plan.final_rays * receivers * (1.0 + BRIGHT_SHARE) * self.shoot_share
+        return shoot + plan.final_rays * receivers * (1.0 + BRIGHT_SHARE) * self.role.shoot_share
 
     def budget_left(self) -> int | None:
         """Rays --max-rays leaves this run (None: no budget; a shared run's replica: its 1/k of what
@@ -612,8 +638,8 @@ class Solver:
         cfg = self.config
         if not cfg.max_rays:
             return None
-        spent = self.stats.rays + (self.preset_direct.rays * self.shoot_share if self.preset_direct is not None
-                                   else 0)
+        preset = self.role.preset_direct
+        spent = self.stats.rays + (preset.rays * self.role.shoot_share if preset is not None else 0)
         return int(cfg.max_rays - spent)
 
     @staticmethod
@@ -636,7 +662,7 @@ class Solver:
         if left is None or not by_accuracy(cfg):
             return
         receivers = int(self.patches.rho.any(axis=1).sum())
-        per_ray = receivers * (1.0 + BRIGHT_SHARE) * self.shoot_share  # this run's share of a gather ray
+        per_ray = receivers * (1.0 + BRIGHT_SHARE) * self.role.shoot_share  # this run's share of a gather ray
         pending = self.final_pending()
         shoot, gather = self.shoot_prediction(), (self.final_rays * per_ray if pending else 0.0)
         f = self.budget_scale(left, shoot + gather)
@@ -644,7 +670,7 @@ class Solver:
             self.power_per_ray /= f
             if pending:
                 self.final_rays = max(2 * int(self.final_rays * f / 2), 2)
-            share = f" (this replica's 1/{self.replicas} of them)" if self.replicas > 1 else ""
+            share = f" (this replica's 1/{self.role.replicas} of them)" if self.role.replicas > 1 else ""
             takes = f"{shoot:.3g} shooting" + (f", {gather:.3g} in the final gather" if pending else "")
             gives = (f"shooting at {float(self.ledger.emitted.sum()) / self.power_per_ray:.3g} rays per emitted "
                      f"power" + (f", {self.final_rays} gather rays per receiving patch" if pending else ""))
@@ -735,15 +761,15 @@ class Solver:
         run's replica the estimate of the average of ``replicas`` such runs (the shared noise stays,
         the rest falls by 1/k in the mean square, the bias stays)."""
         est = est if est is not None else self.estimate()
-        if self.replicas <= 1:
+        if self.role.replicas <= 1:
             return est.rms_refl
         sums = self.noise.sums()
         refl_ms = max(sums.r2, 0.0) / max(sums.area, 1e-300)  # RMS(B - E)^2, the estimate's reference
         if refl_ms <= 0:
             return est.rms_refl
         noise = est.noise_refl ** 2
-        shared = min(self.shared_noise / refl_ms, noise)
-        return math.sqrt(shared + (noise - shared) / self.replicas + est.bias_refl ** 2)
+        shared = min(self.role.shared_noise / refl_ms, noise)
+        return math.sqrt(shared + (noise - shared) / self.role.replicas + est.bias_refl ** 2)
 
     def snapshot(self, force: bool = False) -> None:
         """Record a snapshot when the ray count passed the next geometric mark."""
@@ -809,9 +835,9 @@ class Solver:
         self.recount()
         self.snapshot(force=True)
         # a preset gather (a shared run's) is booked even when stopping: it is done, and cheap to book
-        if self.config.direct and not self.gathered and (self.preset_direct is not None
+        if self.config.direct and not self.gathered and (self.role.preset_direct is not None
                                                          or not (should_stop is not None and should_stop())):
-            self.gather()
+            self.gather(should_stop)
             self.snapshot()
             if on_progress is not None:
                 on_progress(self)
@@ -829,7 +855,7 @@ class Solver:
             self.snapshot()
             if on_progress is not None:
                 on_progress(self)
-        if (reason == "final_gather" or (self.final_pending() and reason == "tolerance")) and not self.defer_final:
+        if (reason == "final_gather" or (self.final_pending() and reason == "tolerance")) and not self.role.defer_final:
             self.finish(should_stop)
             if self._final is not None and self._final.stopped:
                 reason = "stopped"

@@ -426,3 +426,29 @@ def test_a_stop_in_the_final_gather_ends_it_within_a_batch(tmp_path):
     was = (p.area[:, None] * (shot["b"] - p.emission))[reached].sum(axis=0)
     np.testing.assert_allclose(refl, was, rtol=1e-9)
     assert any("stopped before its last round" in c.text for c in solver.choices.of("final_gather"))
+
+
+def test_a_stop_in_the_direct_gather_abandons_it_within_a_run_of_cells(tmp_path, monkeypatch):
+    """Ctrl-C while the exact direct gather runs: it ends at its next run of cells (the 20x20 office's
+    gather takes tens of seconds; the first Ctrl-C waited for it), books nothing, and the run stops
+    with the emitters' light unshot: B = E, the ledger closed, the report says why."""
+    import scenes
+    from dcrad import direct
+    from dcrad.pipeline import prepare
+
+    monkeypatch.setattr(direct, "CHUNK_PAIRS", 2000)  # many runs of cells on a small scene
+    _, p, _ = prepare(scenes.write_builtin("office", tmp_path))
+    solver = Solver(p, SolverConfig(seed=2))
+    polls = []
+
+    def should_stop() -> bool:  # False when run asks before the gather, True at the gather's first poll
+        polls.append(True)
+        return len(polls) > 1
+
+    solver.run(should_stop=should_stop)
+    assert solver.stats.stopped_by == "stopped" and solver.direct_light is None
+    assert any(c.text.startswith("direct gather stopped") for c in solver.choices.of("direct"))
+    np.testing.assert_array_equal(p.radiosity, p.emission)
+    np.testing.assert_array_equal(p.unshot, p.emission)
+    assert solver.ledger.closure() < 1e-12 and float(solver.ledger.absorbed.sum()) == 0.0
+    assert len(polls) >= 2
