@@ -10,6 +10,8 @@ The public API, for use from Python (the ``dcrad`` command and the gRPC services
     estimate and the report; ``out`` (a folder) also writes every output file, as ``dcrad solve``.
 ``Result``, ``Scene``, ``Patches``, ``Estimate``, ``SolverConfig``
     What those return and take (``SolverConfig``'s fields are ``solve``'s ``settings``).
+``PointSource``
+    A point light with an intensity distribution, for ``solve``'s ``sources`` (emitters.py).
 ``DcradError``, ``SceneError``, ``ConfigError``
     The errors: every error dcrad raises on bad input is a ``DcradError``.
 
@@ -43,12 +45,13 @@ from .errors import ConfigError, DcradError, SceneError
 if TYPE_CHECKING:
     from .api import Result, load, solve
     from .config import SolverConfig
+    from .emitters import PointSource
     from .noise import Estimate
     from .patches import Patches
     from .scene import Scene
 
-__all__ = ["load", "solve", "Result", "Scene", "Patches", "Estimate", "SolverConfig", "DcradError", "SceneError",
-           "ConfigError"]
+__all__ = ["load", "solve", "Result", "Scene", "Patches", "Estimate", "SolverConfig", "PointSource", "DcradError",
+           "SceneError", "ConfigError"]
 
 
 def __getattr__(name: str) -> Any:
@@ -66,6 +69,8 @@ def __getattr__(name: str) -> Any:
         from .noise import Estimate as value
     elif name == "SolverConfig":
         from .config import SolverConfig as value
+    elif name == "PointSource":
+        from .emitters import PointSource as value
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value

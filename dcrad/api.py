@@ -12,7 +12,7 @@ import dataclasses
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +21,7 @@ import numpy as np
 
 from . import pipeline
 from .config import SolverConfig
+from .emitters import Emitter
 from .errors import ConfigError
 from .export import input_triangle_radiosity
 from .noise import Estimate
@@ -74,7 +75,7 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
           patch_size: float | None = None, *, scale: float = 1.0, up: str | None = None, two_sided: bool = False,
           workplane: float = 0.0, width: int = 640, height: int = 480,
           on_progress: Callable[[Any], None] | None = None, should_stop: Callable[[], bool] | None = None,
-          **settings: Any) -> Result:
+          sources: Sequence[Emitter] = (), **settings: Any) -> Result:
     """Solve a scene in this process (one subscene: no partition, no workers) and return a ``Result``.
 
     scene_or_path : a ``Scene`` (``dcrad.load``) or a scene file's path
@@ -90,6 +91,8 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
     width, height : the preview images' size, with ``out``
     on_progress   : called with the solver after each batch (``dcrad.progress.Progress`` reads it)
     should_stop   : polled between batches; True stops the run cleanly (the result is still whole)
+    sources       : light sources that are not surfaces of the scene (``dcrad.PointSource``, any
+                    ``emitters.Emitter``), in the scene's coordinates after ``scale`` (metres)
     settings      : any other ``SolverConfig`` field by name (``seed=3``, ``time_limit=10``, ...)
 
     Raises ``SceneError`` for a bad scene file and ``ConfigError`` for a bad setting.
@@ -106,6 +109,7 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
         scene_or_path if given is None else given.path, patch_size, scale, up, two_sided, timings=phases,
         loaded=None if given is None else (given, 0.0), workplane=workplane)
     timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
+    patches.sources = tuple(sources)
     books, tracer = pipeline.solve_single(patches, config, timings, on_progress, should_stop)
     folder = Path(out) if out is not None else None
     report = pipeline.finish_run(folder, scene, books, pipeline.scene_settings(scene, size, scale, two_sided,

@@ -44,6 +44,7 @@ from .boundary import (
     make_boundary,
 )
 from .config import DivideConfig, SolverConfig
+from .emitters import check_single
 from .energy import Ledger
 from .errors import ConfigError
 from .noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
@@ -899,6 +900,7 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     No Solver and no Embree scene is built (the coordinator, which traces nothing,
     sends these to workers).  Returns (specs, boundaries, parents, partition).
     """
+    check_single(patches.sources, "divided")
     if planes is None and boxes is None:
         check_subscenes(divide.subscenes, len(patches))
     config = resolve(config, patches.units)  # the job's ray density: from its patch count

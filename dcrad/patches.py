@@ -104,6 +104,8 @@ class Patches:
     unshot: np.ndarray = None  # type: ignore[assignment]
     twin: np.ndarray = None  # type: ignore[assignment]
     cluster: np.ndarray = None  # type: ignore[assignment]
+    #: light sources that are not patches (emitters.Emitter: point lights, luminaires); one process only
+    sources: tuple = ()
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, np.float64)
@@ -120,6 +122,7 @@ class Patches:
         self.twin = np.full(n, -1, np.int64) if self.twin is None else np.ascontiguousarray(self.twin, np.int64)
         self.cluster = (np.full(n, -1, np.int64) if self.cluster is None
                         else np.ascontiguousarray(self.cluster, np.int64))
+        self.sources = tuple(self.sources)
 
     # -- as arrays (a worker's copy) ---------------------------------------------------
     def table_arrays(self) -> dict:
@@ -131,7 +134,8 @@ class Patches:
     def from_table(cls, arrays: dict, names: list, radiosity: np.ndarray | None = None,
                    unshot: np.ndarray | None = None) -> "Patches":
         """The table of ``table_arrays`` (``twin``, ``cluster`` optional), B and dB given or starting at E."""
-        given = {"radiosity": radiosity, "unshot": unshot, "twin": arrays.get("twin"), "cluster": arrays.get("cluster")}
+        given: dict = {"radiosity": radiosity, "unshot": unshot, "twin": arrays.get("twin"),
+                       "cluster": arrays.get("cluster")}
         return cls(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
                    arrays["obj"], list(names), **{k: v for k, v in given.items() if v is not None})
 

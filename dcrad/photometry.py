@@ -431,6 +431,33 @@ def _cells(x: np.ndarray, nrm: np.ndarray, rad: np.ndarray, most: int):
 
 def direct_irradiance(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndarray, seed: int = 0,
                       emitters: _Emitters | None = None) -> tuple[np.ndarray, int]:
+    """(H_direct (k,3) W/m^2, shadow rays traced) at receivers facing ``normals`` (k,3): triangles
+    ``corners`` (k,3,3) (H is the mean over the triangle) or points (k,3).  The emitting patches'
+    light (``_patch_direct``) and the light sources' that are not patches (emitters.Emitter: exact,
+    at the rule's points)."""
+    out, rays = _patch_direct(patches, tracer, corners, normals, seed, emitters)
+    sources = getattr(patches, "sources", ())
+    if not sources or len(out) == 0:
+        return out, rays
+    corners = np.asarray(corners, np.float64)
+    normals = np.asarray(normals, np.float64)
+    if corners.ndim == 2:
+        points, weights = corners[:, None, :], np.ones(1)
+    else:
+        points, weights = np.einsum("rc,kcx->krx", _TRI_RULE, corners), np.full(len(_TRI_RULE), 1 / len(_TRI_RULE))
+    k, r = points.shape[:2]
+    at = points.reshape(-1, 3)
+    facing = np.repeat(normals, r, axis=0)
+    offset = 2e-6 * patches.scale
+    for source in sources:
+        h = source.irradiance(at, facing, tracer, offset).reshape(k, r, 3)
+        out += np.einsum("r,krc->kc", weights, h)
+        rays += len(at)
+    return out, rays
+
+
+def _patch_direct(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndarray, seed: int = 0,
+                  emitters: _Emitters | None = None) -> tuple[np.ndarray, int]:
     """(H_direct (k,3) W/m^2 from the emitting patches, shadow rays traced) at receivers facing
     ``normals`` (k,3): triangles ``corners`` (k,3,3) (H is the mean over the triangle: F by a
     degree-2 rule, shadow rays from stratified points of it) or points (k,3).

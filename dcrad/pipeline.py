@@ -30,7 +30,7 @@ from .passes import solve_to_accuracy
 from .patches import Patches
 from .rays import Tracer
 from .report import TIMINGS, RunBooks, run_report, write_json
-from .scene import load_scene
+from .scene import NO_EMITTERS, load_scene
 from .solver import GREY_CHOICE, Stats, stiff_choice
 
 __all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "solve_single",
@@ -454,7 +454,8 @@ def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, wid
     """
     settings = books.config.as_dict() | scene_values
     t0 = time.perf_counter()
-    warnings = list(scene.warnings) + books.warnings()
+    lit = bool(np.any(books.ledger.emitted))  # light sources that are not patches light a scene file without emitters
+    warnings = [w for w in scene.warnings if not (lit and w == NO_EMITTERS)] + books.warnings()
     size = float(settings.get("patch_size_m") or 0.0)
     auto = scene.element_choice if scene.element_choice is not None and scene.element_choice[0] == size else None
     p = books.patches

@@ -57,6 +57,9 @@ from .texture import read_texture, uv_at, uv_means
 
 __all__ = ["Scene", "load_scene", "DEFAULT_RHO", "UP_AXES", "detect_up"]
 
+#: the scene's warning when nothing in it emits (a run given light sources drops it: pipeline.finish_run)
+NO_EMITTERS = "no emitters: the solution is zero"
+
 log = logging.getLogger(__name__)
 
 #: reflectance of faces without a usable material
@@ -895,7 +898,7 @@ def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool 
             f"in {_listing(names[i] for i in obj[bad])}"
         )
     if not (emission[valid] > 0).any():
-        warnings.append("no emitters: the solution is zero")
+        warnings.append(NO_EMITTERS)
     want = str(up).strip().lower().lstrip("+") if up is not None else "auto"
     if want in ("auto", "") and ext != ".obj":
         want, source = "y", "glTF convention (Y up)"

@@ -52,6 +52,7 @@ from .accuracy import by_accuracy, final_plan, resolve
 from .choices import Choice, Choices
 from .config import SolverConfig
 from .direct import MAX_ANALYTIC_RECEIVERS, AnalyticGather, DirectTally, merge, shared_rate
+from .emitters import check_single
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .final import FinalGather
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
@@ -377,6 +378,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     ``direct``, ``replicas`` and ``gather`` methods (the coordinator's, on workers).  Returns None
     when the lights make no exact form factors (the caller solves another way).  ``on_phase(name,
     elapsed s, rays so far, estimate or None)`` after each phase.  The result is left in ``patches``."""
+    check_single(patches.sources, "shared")
     cfg = resolve(config, patches.units)
     t0 = time.perf_counter()
     emission = patches.emission.copy()

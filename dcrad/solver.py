@@ -71,6 +71,7 @@ from .direct import (
     rescale_to_landed,
     shadow_rays_for,
 )
+from .emitters import sources_power
 from .energy import Ledger, escaped_light, flipped_normals
 from .final import BRIGHT_SHARE, FinalGather
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
@@ -169,7 +170,9 @@ class Solver:
         self.config = resolve(config or SolverConfig(), patches.units)
         self.tracer = tracer if tracer is not None else Tracer.mesh(patches)
         self.rng = np.random.default_rng(self.config.seed)
-        self.ledger = Ledger(emitted=patches.emitted_power.copy())
+        self.ledger = Ledger(emitted=patches.emitted_power + sources_power(patches.sources))
+        #: the light sources that are not patches still to shoot (``shoot_sources``: once, at the start)
+        self._sources_left = list(patches.sources)
         self.ledger.unshot = patches.unshot_power.copy()
         self.ledger.unshot_abs = (np.abs(patches.unshot) * patches.area[:, None]).sum(axis=0)
         #: W (magnitudes) shot by patches, lost (escaped, back faces), landed, kept as unshot:
@@ -426,6 +429,29 @@ class Solver:
         self.commit(batch, tally)
         return self.counted(len(idx), len(batch))
 
+    def shoot_sources(self) -> int:
+        """Shoot each light source that is not a patch (emitters.py) once, its whole power at the run's
+        power per ray, in batches of at most ``batch_rays``: what lands is deposited, reflected and
+        shot on like any light, and the ledger books it as emitted (``__init__``) and shot here.
+        Returns the rays traced."""
+        rays = 0
+        batch_rays = self.config.batch_rays
+        while self._sources_left:
+            source = self._sources_left.pop(0)
+            total = float(np.abs(source.power()).sum())
+            if total <= 0:
+                continue
+            n = max(int(math.ceil(total / self.power_per_ray)), self.config.min_rays, 2)
+            for lo in range(0, n, batch_rays):
+                m = min(batch_rays, n - lo)
+                t0 = time.perf_counter()
+                batch = source.rays(m, self.rng)
+                batch.power = batch.power * (m / n)  # each batch an unbiased estimate of its share
+                tally = self.fire(batch, t0)
+                self.commit(batch, tally)
+                rays += self.counted(1 if lo == 0 else 0, m)
+        return rays
+
     def direct_inputs(self, rows: np.ndarray | None = None):
         """What the direct gather works from: (emitters, their unshot radiosity, their power (W),
         shadow rays per receiver, the light polygons or None, the FinalPlan or None); None when
@@ -452,6 +478,12 @@ class Solver:
                 "direct", f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
                                 f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
         plan = final_plan(cfg, len(p)) if lights is not None else None
+        if plan is not None and p.sources:
+            # the final gather re-estimates all but the gathered direct light, and a source's shot
+            # direct light is not in it: it would be laid out as if it were reflected light
+            plan = None
+            self.choices.add("direct", "no final plan: the scene has light sources that are not patches "
+                                       "(emitters.py), whose shot direct light the final gather cannot tell apart")
         if plan is not None:
             shadow = plan.shadow_rays
             if cfg.max_rays:
@@ -833,6 +865,7 @@ class Solver:
         self._t0 = clock() - self.stats.wall_seconds
         self.pool.invalidate()  # the table may have changed since the last run
         self.recount()
+        self.shoot_sources()
         self.snapshot(force=True)
         # a preset gather (a shared run's) is booked even when stopping: it is done, and cheap to book
         if self.config.direct and not self.gathered and (self.role.preset_direct is not None

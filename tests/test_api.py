@@ -111,9 +111,10 @@ def test_import_dcrad_is_cheap_and_solve_stays_the_function():
 
 def test_all_lists_the_api():
     assert set(dcrad.__all__) == {"load", "solve", "Result", "Scene", "Patches", "Estimate", "SolverConfig",
-                                  "DcradError", "SceneError", "ConfigError"}
+                                  "PointSource", "DcradError", "SceneError", "ConfigError"}
+    from dcrad.emitters import PointSource
     from dcrad.noise import Estimate
     from dcrad.patches import Patches
     from dcrad.scene import Scene
 
-    assert (dcrad.Scene, dcrad.Patches, dcrad.Estimate) == (Scene, Patches, Estimate)
+    assert (dcrad.Scene, dcrad.Patches, dcrad.Estimate, dcrad.PointSource) == (Scene, Patches, Estimate, PointSource)

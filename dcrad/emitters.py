@@ -1,0 +1,158 @@
+"""Light sources that are not surfaces of the scene: the emitter seam.
+
+Two kinds of light reach dcrad's solution.  Emitting surfaces (``Ke``, glTF emissive) are
+patches with an exitance E: they sit in the patch table, the shooting shoots their unshot
+power like any patch's, and the direct gather reads their outlines (lights.py, direct.py).
+Everything else (a luminaire of a photometric file, a point or spot light, later the sky and the
+sun) is an ``Emitter``: an object that says how much it emits, sends its light as rays, and gives
+the exact direct irradiance it puts on any point.  What asks them:
+
+* ``Solver`` books their power as emitted and shoots it once, at the start of a run, before the
+  patches shoot (``Solver.shoot_sources``): its rays land, reflect and are shot on like any
+  other light, so the ledger closes with them in it;
+* ``photometry.direct_irradiance`` adds their exact direct light to the lux of black surfaces
+  and of the work plane (a point source: one shadow ray a point is exact).
+
+A new kind of emitter implements the three methods below and touches nothing else.  What they
+are not yet: gathered by the solver's exact direct gather (their direct light on reflecting
+patches is shot, so it carries Monte Carlo noise like the shooting's), or run divided or shared
+(``check_single``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from .errors import ConfigError
+from .noise import half_mask
+from .sampling import lattice
+from .shoot import RayBatch
+
+__all__ = ["Emitter", "PointSource", "sources_power", "check_single", "sphere_directions"]
+
+
+@runtime_checkable
+class Emitter(Protocol):
+    """A light source outside the patch table (module doc)."""
+
+    name: str
+
+    def power(self) -> np.ndarray:
+        """(3,) W it emits in all, per channel."""
+        ...
+
+    def rays(self, n: int, rng: np.random.Generator) -> RayBatch:
+        """``n`` rays carrying its whole power (each ray's share by its direction), split in two
+        halves with independent samples (noise.py: the halves are two solutions)."""
+        ...
+
+    def irradiance(self, points: np.ndarray, normals: np.ndarray, tracer, offset: float) -> np.ndarray:
+        """(m,3) W/m^2 its direct light puts on ``points`` (m,3) facing ``normals`` (m,3), occluders
+        included (``tracer``: the scene's Embree scene; ``offset``: m the shadow rays start off the
+        surface)."""
+        ...
+
+
+def sphere_directions(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(dirs (n,3) unit, half (n,) bool): stratified uniform directions on the sphere, the first
+    ceil(n/2) and the rest from two independently shifted lattices (the two halves)."""
+    counts = np.array([n])
+    half = half_mask(counts, rng)
+    u = np.empty((n, 2))
+    for which in (True, False):
+        rows = np.flatnonzero(half == which)
+        if len(rows):
+            u[rows] = lattice(np.arange(len(rows)), np.repeat(rng.random((1, 2)), len(rows), axis=0), 2)
+    z = 1.0 - 2.0 * u[:, 0]
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    phi = 2.0 * math.pi * u[:, 1]
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1), half
+
+
+@dataclass
+class PointSource:
+    """A point light at ``position`` (m, the solver's coordinates) with intensity I(direction) (3,)
+    W/sr per channel.  ``intensity`` (3,): isotropic, I the same in every direction; a callable
+    (dirs (m,3) unit -> (m,3) W/sr) for a distribution (a luminaire's candela table, converted)."""
+
+    position: np.ndarray
+    intensity: object = field(default_factory=lambda: np.ones(3))
+    name: str = "point source"
+    #: directions a numerical integral of a callable intensity takes (the power)
+    integration_rays: int = 1 << 16
+
+    def __post_init__(self) -> None:
+        self.position = np.asarray(self.position, np.float64).reshape(3)
+        if not np.isfinite(self.position).all():
+            raise ConfigError(f"{self.name}: position {self.position.tolist()} is not finite")
+        if not callable(self.intensity):
+            self.intensity = np.asarray(self.intensity, np.float64).reshape(3)
+            if not (np.isfinite(self.intensity).all() and (self.intensity >= 0).all()):
+                raise ConfigError(f"{self.name}: intensity {self.intensity.tolist()} W/sr must be finite and >= 0")
+        self._power: np.ndarray | None = None
+
+    def intensity_at(self, dirs: np.ndarray) -> np.ndarray:
+        """(m,3) W/sr toward unit ``dirs`` (m,3)."""
+        if callable(self.intensity):
+            i = np.asarray(self.intensity(dirs), np.float64).reshape(len(dirs), 3)
+            if not (np.isfinite(i).all() and (i >= 0).all()):
+                raise ConfigError(f"{self.name}: its intensity distribution gave negative or non-finite values")
+            return i
+        return np.broadcast_to(np.asarray(self.intensity, np.float64), (len(dirs), 3))
+
+    def power(self) -> np.ndarray:
+        """4 pi I when isotropic; else the mean of I over ``integration_rays`` stratified directions
+        times 4 pi (computed once)."""
+        if self._power is None:
+            if callable(self.intensity):
+                dirs, _ = sphere_directions(self.integration_rays, np.random.default_rng(0))
+                self._power = 4.0 * math.pi * self.intensity_at(dirs).mean(axis=0)
+            else:
+                self._power = 4.0 * math.pi * np.asarray(self.intensity)
+        return self._power
+
+    def rays(self, n: int, rng: np.random.Generator) -> RayBatch:
+        """Uniform stratified directions, each ray carrying 4 pi I(dir) / n_half / 2 of its half's
+        power: each half is an unbiased estimate of the whole emission, so their mean is too
+        (for an isotropic source every ray carries exactly P / n)."""
+        dirs, half = sphere_directions(n, rng)
+        n_a = int(half.sum())
+        n_b = n - n_a
+        per = np.where(half, 0.5 / max(n_a, 1), 0.5 / max(n_b, 1)) if n_b else np.full(n, 1.0 / n)
+        power = 4.0 * math.pi * self.intensity_at(dirs) * per[:, None]
+        origins = np.broadcast_to(self.position, (n, 3)).copy()
+        return RayBatch(origins=origins, dirs=dirs, power=power, shooter=np.zeros(n, np.int64),
+                        half=half if n_b else None)
+
+    def irradiance(self, points: np.ndarray, normals: np.ndarray, tracer, offset: float) -> np.ndarray:
+        """I(-d) cos / r^2 where the point sees the source (one shadow ray a point: exact)."""
+        points = np.asarray(points, np.float64)
+        d = self.position - points
+        r = np.sqrt(np.einsum("ij,ij->i", d, d))
+        toward = d / np.maximum(r, 1e-300)[:, None]
+        cos = np.einsum("ij,ij->i", toward, normals)
+        lit = np.flatnonzero((cos > 0) & (r > offset))
+        out = np.zeros((len(points), 3))
+        if not len(lit):
+            return out
+        start = points[lit] + offset * toward[lit]
+        seen = ~tracer.occluded(start, toward[lit], r[lit] - 2.0 * offset)
+        lit = lit[seen]
+        out[lit] = self.intensity_at(-toward[lit]) * (cos[lit] / r[lit] ** 2)[:, None]
+        return out
+
+
+def sources_power(sources) -> np.ndarray:
+    """(3,) W all of ``sources`` emit."""
+    return sum((np.asarray(s.power(), np.float64) for s in sources), np.zeros(3))
+
+
+def check_single(sources, how: str) -> None:
+    """ConfigError when a run that cannot carry sources yet (``how``: divided, shared) is asked to."""
+    if sources:
+        raise ConfigError(f"light sources that are not surfaces ({', '.join(s.name for s in sources)}) run in one "
+                          f"process for now (--workers 0, one subscene), not {how}")

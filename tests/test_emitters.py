@@ -1,0 +1,151 @@
+"""Light sources that are not surfaces (emitters.py), against closed forms.
+
+The layouts are the CIE 171:2006 ones for point sources: an isotropic source in a closed black
+room (case 5.4: every lumen lands), a source above a black floor (case 5.2: E = I cos / d^2), and
+the source at the centre of a closed cube of uniform reflectance (case 5.8: the mean indirect
+irradiance is rho Phi / (S (1 - rho))).  A new kind of emitter is checked the same way with a
+class defined here, to show that adding one touches nothing but its own class.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import dcrad
+from dcrad.emitters import Emitter, PointSource
+from dcrad.errors import ConfigError
+from dcrad.photometry import workplane
+from dcrad.rays import Tracer
+from scenes.objwriter import ObjWriter
+
+SIDE, HEIGHT = 4.0, 3.0
+
+
+def box(folder, rho: float, size=(SIDE, HEIGHT, SIDE), stem="box", floor_only=False):
+    """A closed box (or only its floor) of one reflectance, its faces facing in; Y up."""
+    x, y, z = size
+    w = ObjWriter()
+    w.material("surface", rho)
+    faces = [("floor", 1, 0.0, 1)]
+    if not floor_only:
+        faces += [("ceiling", 1, y, -1), ("wall_x0", 0, 0.0, 1), ("wall_x1", 0, x, -1), ("wall_z0", 2, 0.0, 1),
+                  ("wall_z1", 2, z, -1)]
+    for name, axis, value, facing in faces:
+        w.begin(name, "surface")
+        lo, hi = {0: ((0.0, 0.0), (y, z)), 1: ((0.0, 0.0), (x, z)), 2: ((0.0, 0.0), (x, y))}[axis]
+        w.add_rect(axis, value, lo, hi, facing)
+    return w.write(folder, stem)
+
+
+def test_an_isotropic_source_in_a_closed_black_room_puts_every_watt_on_its_surfaces(tmp_path):
+    """CIE 171:2006 case 5.4: Phi = 4 pi I emitted, all of it absorbed by the black surfaces, none
+    escaping; the ledger closes to round-off and the run is exact (nothing reflects)."""
+    intensity = 10_000.0 / 179.0 / (4 * math.pi)  # a 10,000 lm source, W/sr at 179 lm/W
+    src = PointSource([2.0, 1.5, 2.0], np.full(3, intensity), name="lamp")
+    result = dcrad.solve(box(tmp_path, 0.0), accuracy=0.05, patch_size=0.5, sources=[src], seed=1)
+    led = result.report["ledger"]
+    phi = 4 * math.pi * intensity
+    assert sum(led["emitted"]) == pytest.approx(3 * phi, rel=1e-12)
+    assert sum(led["absorbed"]) == pytest.approx(3 * phi, rel=1e-9)
+    assert sum(led["escaped"]) == 0.0 and led["closure"] < 1e-9
+    assert not any("no emitters" in w for w in result.report["warnings"])
+
+
+def test_a_point_above_a_black_floor_lights_it_by_the_inverse_square_law(tmp_path):
+    """CIE 171:2006 case 5.2: I(theta) = I0 cos(theta) (a downlight) 3 m above a black floor; every
+    work-plane point reads E = I cos / d^2 = I0 h^2 / d^4 (exact: one shadow ray a point), and the
+    floor's patches their mean of it, from the solve's outputs."""
+    i0 = 1000.0 / 179.0
+
+    def downlight(dirs):
+        return np.repeat(np.maximum(-dirs[:, 1:2], 0.0) * i0, 3, axis=1)
+
+    pos = np.array([2.0, HEIGHT, 2.0])
+    src = PointSource(pos, downlight, name="downlight")
+    assert src.power() == pytest.approx(np.full(3, math.pi * i0), rel=1e-3)  # integral of I0 cos over a hemisphere
+    path = box(tmp_path, 0.0, floor_only=True)
+    result = dcrad.solve(path, tmp_path / "out", accuracy=0.05, patch_size=0.25, sources=[src], seed=1,
+                         width=32, height=24)
+    wp = workplane(result.patches, 0.0001, spacing=0.37, tracer=Tracer.mesh(result.patches), border=0.0)
+    d = pos - wp["points"]
+    r2 = (d * d).sum(axis=1)
+    expected = 179.0 * i0 * (HEIGHT - 0.0001) ** 2 / r2 ** 2  # lux: Y of a grey W/m^2 is itself
+    assert len(expected) > 80
+    np.testing.assert_allclose(wp["lux"], expected, rtol=1e-9)
+
+
+def test_the_mean_indirect_light_in_a_closed_cube_is_the_integrating_sphere_s(tmp_path):
+    """CIE 171:2006 case 5.8: an isotropic source at the centre of a closed 4 m cube of reflectance
+    rho: the area-weighted mean of B - E over the walls is the reflected exitance, and B = rho H, so
+    mean H_indirect = mean H - mean H_direct = rho Phi / (S (1 - rho)).  Shot, not gathered: within
+    the run's own estimate, at rho 0.5 and 0.9."""
+    for rho in (0.5, 0.9):
+        intensity = 1.0 / (4 * math.pi)  # 1 W
+        src = PointSource([2.0, 2.0, 2.0], np.full(3, intensity))
+        result = dcrad.solve(box(tmp_path / f"r{rho}", rho, (4.0, 4.0, 4.0)), accuracy=0.01, patch_size=0.5,
+                             sources=[src], seed=2)
+        p = result.patches
+        area = float(p.area.sum())
+        reflected = float((p.area[:, None] * (p.radiosity - p.emission)).sum()) / 3
+        # all reflected light: rho times everything that arrives, Phi (direct) + the indirect
+        expected = rho * 1.0 / (1 - rho)
+        est = result.estimate
+        assert est is not None and result.report["ledger"]["closure"] < 1e-9
+        assert reflected == pytest.approx(expected, rel=max(3 * est.rms_refl, 0.01)), (rho, est)
+        assert area == pytest.approx(96.0)
+
+
+class HalfSphere:
+    """A new kind of emitter, here only: isotropic below the horizontal, dark above.  It implements
+    the protocol and nothing else is touched (the solver shoots it, the photometry reads it)."""
+
+    name = "half sphere"
+
+    def __init__(self, position, intensity: float):
+        self.point = PointSource(position, lambda d: np.repeat((d[:, 1:2] < 0) * intensity, 3, axis=1))
+        self.i = intensity
+
+    def power(self):
+        return np.full(3, 2 * math.pi * self.i)
+
+    def rays(self, n, rng):
+        batch = self.point.rays(n, rng)
+        batch.power = batch.power * (self.power()[0] / max(float(batch.power[:, 0].sum()), 1e-300))
+        return batch
+
+    def irradiance(self, points, normals, tracer, offset):
+        return self.point.irradiance(points, normals, tracer, offset)
+
+
+def test_a_new_kind_of_emitter_touches_only_its_class(tmp_path):
+    """The half-sphere source in a closed black room: its 2 pi I all land (the ledger), and the
+    floor under it reads I / h^2 straight below (the photometry), with no change outside this file."""
+    src = HalfSphere([2.0, 2.0, 2.0], 1.0)
+    assert isinstance(src, Emitter)
+    result = dcrad.solve(box(tmp_path, 0.0), tmp_path / "out", accuracy=0.05, patch_size=0.5, sources=[src],
+                         seed=3, width=32, height=24)
+    led = result.report["ledger"]
+    assert sum(led["absorbed"]) == pytest.approx(3 * 2 * math.pi, rel=1e-9) and led["closure"] < 1e-9
+    wp = workplane(result.patches, 0.0001, spacing=4.0 / 3, tracer=Tracer.mesh(result.patches), border=0.0)
+    centre = np.argmin(np.linalg.norm(wp["points"][:, [0, 2]] - 2.0, axis=1))
+    assert wp["lux"][centre] == pytest.approx(179.0 * 1.0 / (2.0 - 0.0001) ** 2, rel=1e-6)
+
+
+def test_sources_are_refused_where_they_cannot_run_yet_and_bad_ones_by_name(tmp_path):
+    """Divided and shared runs cannot carry them yet: one line saying so; a bad position or
+    intensity is named."""
+    from dcrad.config import DivideConfig, SolverConfig
+    from dcrad.divide import build_subscenes
+    from dcrad.pipeline import prepare
+
+    _, p, _ = prepare(box(tmp_path, 0.5), 0.5)
+    p.sources = (PointSource([2.0, 1.5, 2.0], np.ones(3), name="lamp 7"),)
+    with pytest.raises(ConfigError, match="lamp 7.*not divided"):
+        build_subscenes(p, SolverConfig(), DivideConfig(subscenes=2))
+    with pytest.raises(ConfigError, match="position"):
+        PointSource([np.nan, 0.0, 0.0])
+    with pytest.raises(ConfigError, match="intensity"):
+        PointSource([0.0, 0.0, 0.0], [-1.0, 0.0, 0.0])
