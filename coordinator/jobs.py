@@ -35,16 +35,15 @@ import numpy as np
 
 from dcrad import export, render
 from dcrad.accuracy import resolve
+from dcrad.choices import Choice
 from dcrad.config import SolverConfig, unused_divide_note
 from dcrad.divide import (
-    SUBSCENES_PER_WORKER,
     DivideConfig,
     assemble,
     check_subscenes,
     expected_work,
     placement,
     run_divided,
-    subscene_limit,
     subscene_specs,
 )
 from dcrad.energy import rms_error
@@ -52,7 +51,8 @@ from dcrad.errors import DcradError
 from dcrad.pipeline import divided_books, finish_run, live_view, output_views, prepare, scene_settings
 from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
-from dcrad.share import run_shared, shared_books, shares_possible
+from dcrad.share import run_shared, shared_books
+from dcrad.strategy import on_workers
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import estimate_to_pb, ledger_to_pb
 
@@ -591,11 +591,17 @@ class JobManager:
         if live == 0:
             raise NoWorkers(f"no worker registered within {wait:.0f} s")
         receivers = int(np.count_nonzero(patches.rho.any(axis=1)))
-        if (not spec.divide.subscenes and job.resume is None and shares_possible(config, receivers)
-                and self._solve_shared(job, scene, patches, size, config, timings, mem)):
-            return
-        # two subscenes per worker (over-decomposed), fewer for a small scene
-        divide = self._divide(spec, min(SUBSCENES_PER_WORKER * live, subscene_limit(len(patches))))
+        strategy = on_workers(config, receivers, len(patches), live, spec.divide.subscenes,
+                              resumed=job.resume is not None)
+        if strategy.kind == "shared":
+            if self._solve_shared(job, scene, patches, size, config, timings, mem, strategy.why):
+                return
+            # the lights make no exact form factors: the job divides space after all
+            strategy = on_workers(config, 0, len(patches), live, spec.divide.subscenes)
+            strategy = dataclasses.replace(strategy, why=Choice("strategy", (
+                f"divided into {strategy.subscenes} subscenes: the lights make no exact-form-factor polygons, "
+                f"which a shared run's direct shares need")))
+        divide = self._divide(spec, strategy.subscenes)
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
         t0 = time.perf_counter()
         # at nice 19 it takes the core the partition leaves idle, and little from the workers: started
@@ -702,6 +708,7 @@ class JobManager:
                 "display_cpu_seconds": display.cpu_seconds,
                 "checkpoints": {k: v for k, v in writer.stats.items() if k != "per_barrier"},
             }
+            books.choices.insert(0, strategy.why)
             if resume is not None:
                 books.choices.add("resumed", f"resumed from barrier {resume.barrier} after a coordinator restart "
                                      f"(checkpoints on disk)")
@@ -730,7 +737,7 @@ class JobManager:
                 h.drop()
 
     def _solve_shared(self, job: Job, scene, patches, size: float, config: SolverConfig, timings: dict,
-                      mem: MemoryLog) -> bool:
+                      mem: MemoryLog, why: Choice) -> bool:
         """The job as a shared run (dcrad.share): every live worker holds the whole scene, the
         direct gather is split by receivers, each worker runs a replica, the replicas are averaged.
         False (nothing done) when the lights make no exact form factors: the job divides instead."""
@@ -786,6 +793,7 @@ class JobManager:
         timings["solve_s"] = run.stats.wall_seconds
         where = f"{len(shares.used)} worker process(es): {', '.join(sorted(shares.used))}"
         books, shared = shared_books(run, patches, config, timings, where=where)
+        books.choices.insert(0, why)
         unused = unused_divide_note(from_pb(DivideConfig, spec.divide, subscenes=1),
                                     f"was shared by {len(shares.used)} worker(s), each holding the whole scene")
         if unused:

@@ -8,6 +8,7 @@ Codes (stable; the report's readers may rely on them):
 
 ==================  ==============================================================
 ``workers``         how many worker processes, and why (the default's choice)
+``strategy``        how the coordinator runs the job (shared or divided), and why
 ``mesh``            the element size and what became of the input triangles
 ``clusters``        clusters kept and undone after the solve
 ``grey``            one colour channel solved, not three
@@ -35,9 +36,8 @@ from dataclasses import dataclass
 
 __all__ = ["Choice", "Choices", "CODES"]
 
-CODES = ("workers", "mesh", "clusters", "grey", "direct", "plan", "budget", "final_gather", "pass", "passes",
-         "accuracy",
-         "noise_floor", "stiff", "subscenes", "barriers", "shared", "unused_flags", "resumed")
+CODES = ("workers", "strategy", "mesh", "clusters", "grey", "direct", "plan", "budget", "final_gather", "pass",
+         "passes", "accuracy", "noise_floor", "stiff", "subscenes", "barriers", "shared", "unused_flags", "resumed")
 
 
 @dataclass(frozen=True)

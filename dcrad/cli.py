@@ -157,12 +157,10 @@ def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
     None) for the solve to reuse (a
     built-in scene is written into ``out``/scene, where the solve writes it: the 3x3 office was
     written and loaded twice, 0.5-1.2 s more than ``--workers 0``)."""
-    from .accuracy import by_accuracy
-    from .direct import MAX_ANALYTIC_RECEIVERS
-    from .divide import auto_workers
     from .mesh import estimate_elements
     from .pipeline import default_patch_size, patch_limit, resolve_scene
     from .scene import load_scene
+    from .strategy import gathers, local
 
     if args.planes or args.subscenes > 1:
         return 0, "solved in this process (--workers 0 by default with --planes or --subscenes)", None
@@ -183,8 +181,8 @@ def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
         # only a run in this process settles its clusters (passes.settle); the mesh is handed on
         patches = scene.patches(size)
         n = patches.units
-    gathers = by_accuracy(config) and config.direct and n <= MAX_ANALYTIC_RECEIVERS
-    workers, choice = auto_workers(n, os.cpu_count() or 1, gathers)
+    strategy = local(n, os.cpu_count() or 1, gathers(config, n))
+    workers, choice = strategy.workers, strategy.why.text
     if workers > 0 and fresh:  # the workers' run writes its own copy; out/ keeps only what it wrote
         shutil.rmtree(out / "scene", ignore_errors=True)
     return workers, choice, (scene, seconds, path, patches) if workers == 0 else None

@@ -58,8 +58,8 @@ from .solver import Snapshot, Solver, Stiffness, stiffness
 
 __all__ = [
     "Subscene", "SubsceneHandle", "SubsceneState", "run_divided", "assemble", "DividedRun", "SequentialExecutor",
-    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "auto_workers",
-    "SUBSCENES_PER_WORKER", "SHARE_PATCHES", "AUTO_DIVIDE_PATCHES", "expected_work", "placement",
+    "DivideConfig", "build_subscenes", "subscene_specs", "SubsceneSpec", "SUBSCENES_PER_WORKER",
+    "expected_work", "placement",
     "solve_divided", "subscene_arrays", "checkpoint_arrays", "build_subscene", "boundaries_to_array",
     "boundaries_from_array", "run_subscenes",
 ]
@@ -758,12 +758,6 @@ def check_subscenes(k: int, n_patches: int) -> None:
                           f"use fewer subscenes or a smaller --patch-size")
 
 
-#: patches below which `dcrad solve` runs in one process by default: two local workers pay
-#: for their start-up (processes, upload, partition, loading: a few seconds) only on bigger
-#: scenes (bench/RESULTS.md, issue 14)
-AUTO_DIVIDE_PATCHES = 150_000
-#: the same for a shared run (share.py; the runs that gather their light)
-SHARE_PATCHES = 100_000
 #: subscenes per worker when --subscenes is not given: over-decomposed, so one worker's two
 #: subscenes even out (office 8x8 on 2 workers: 238 s with 2 subscenes, 192 s with 4;
 #: bench_scaling's model on the 3x3 office: 1.27x and 2.05x on 2 machines).  Four per worker
@@ -834,35 +828,6 @@ def placement(work: Sequence[float], workers: int) -> list[int]:
         load[hi] -= d
         load[lo] += d
     return slot.tolist()
-
-
-def auto_workers(n_patches: int, cpus: int, gathers: bool = False) -> tuple[int, str]:
-    """Local worker processes for `dcrad solve` without --workers, and the report's line on it.
-
-    n_patches: the run's unknowns (Patches.units: a cluster of small triangles counts once).
-
-    gathers: the run is in accuracy mode with the direct light gathered, so it takes the final
-    plan (exact direct gather, shot reflected light, final gather: accuracy.py).  Two workers then
-    run it as a shared run (share.py: the whole scene on each, the work split), which pays for
-    its start-up from SHARE_PATCHES patches; dividing space would lose the plan (on the 8x8
-    office at 2%: 307M rays on two workers against 48.7M in one process, bench/RESULTS.md).
-    """
-    if cpus < 2:
-        return 0, "solved in this process (--workers 0 by default): one CPU, local workers would only compete"
-    if gathers:
-        if n_patches < SHARE_PATCHES:
-            return 0, (f"solved in this process (--workers 0 by default): about {n_patches} unknowns, below the "
-                       f"{SHARE_PATCHES} at which two local workers sharing the run pay for their start-up "
-                       f"(--workers 2 shares it anyway)")
-        return 2, (f"two local worker processes by default, sharing one run of the whole scene: about {n_patches} "
-                   f"unknowns (at least {SHARE_PATCHES}); its light is gathered (the final plan), which a "
-                   f"divided run would lose (share.py)")
-    if n_patches < AUTO_DIVIDE_PATCHES:
-        return 0, (f"solved in this process (--workers 0 by default): about {n_patches} unknowns, below the "
-                   f"{AUTO_DIVIDE_PATCHES} at which two local workers pay for their start-up "
-                   f"(--workers 2 divides anyway)")
-    return 2, (f"two local worker processes by default: about {n_patches} unknowns (at least "
-               f"{AUTO_DIVIDE_PATCHES}: dividing pays for the start-up)")
 
 
 @dataclass

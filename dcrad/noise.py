@@ -217,6 +217,7 @@ class NoiseTally:
         self.factors = (1.0, 1.0, 1.0)
         #: W^2/m^4 m^2: the kept clusters' spread beyond their noise (``settle``; 0 before)
         self.pool_bias = 0.0
+        self.undone = 0  #: clusters ``settle`` has undone so far (it may run more than once near a stop)
         #: (n,) the layout cell of each patch, and the area of reflecting patches per cell and channel
         self._cell = layout_cells(patches.centroid, patches.area) if n else np.zeros(0, np.int64)
         self._cell_area = np.stack([np.bincount(self._cell, patches.area * (patches.rho[:, c] > 0))
@@ -258,7 +259,8 @@ class NoiseTally:
         patches.cluster[rows[undo[c]]] = -1
         self.pool_bias = float(np.maximum(spread - noise, 0.0)[~undo].sum())
         self._regroup(patches)
-        return int((~undo).sum()), int(undo.sum())
+        self.undone += int(undo.sum())
+        return int((~undo).sum()), self.undone
 
     # -- the per-batch hooks (Solver.step / Solver.commit) --------------------------
     def shot_diff(self, shooters: np.ndarray, area: np.ndarray) -> np.ndarray:

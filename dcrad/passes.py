@@ -101,6 +101,7 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
             f"reflected light at {cfg.rays_per_power:.3g} rays per emitted power); an independent pass at "
             f"{rpp:.3g} reached {now.rms_refl:.4f} and the two were blended by inverse variance")
         reason = solver.stats.stopped_by
+        solver.settled_target_error()  # the clusters settle before the blend is judged (the report's estimate)
         blended = solver.estimate()
         if reason in ("accuracy", "noise_floor", "tolerance"):
             solver.stats.stopped_by = "accuracy" if blended.rms_refl <= goal else "noise_floor"
@@ -116,7 +117,7 @@ def settle(solver) -> None:
     (NoiseTally.settle); the report says how many, and the estimate counts the kept ones' bias."""
     if not solver.noise.pooled:
         return
-    kept, undone = solver.noise.settle(solver.patches)
+    kept, undone = solver.settle()
     solver.choices.add("clusters", f"clusters: {kept} keep one B (their patches agree within four times their noise's "
                           f"spread; the rest of their spread is in the estimate's bias), {undone} undone (their "
                           f"patches' light differs beyond their noise: each keeps its own B)")

@@ -48,10 +48,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .accuracy import by_accuracy, final_plan, resolve
+from .accuracy import final_plan, resolve
 from .choices import Choice, Choices
 from .config import SolverConfig
-from .direct import MAX_ANALYTIC_RECEIVERS, AnalyticGather, DirectTally, merge, shared_rate
+from .direct import AnalyticGather, DirectTally, merge, shared_rate
 from .emitters import check_single
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .final import FinalGather
@@ -62,7 +62,7 @@ from .report import RunBooks
 from .shooters import spatial_order
 from .solver import FINAL_ROUNDS, ReplicaRole, Snapshot, Solver, Stats, Stiffness, budget_cut_note, fit_round, top_up
 
-__all__ = ["shares_possible", "receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
+__all__ = ["receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
            "tally_to_arrays", "tally_from_arrays", "shared_noise", "work_shares", "SHARES_PER_WORKER",
            "DIRECT_SHARES_PER_WORKER",
@@ -73,14 +73,6 @@ REPLICA_SEED = 104729
 #: the direct shares' random streams: (seed, DIRECT_STREAM, share index); the gather's: (seed,
 #: GATHER_STREAM, round, share index)
 DIRECT_STREAM, GATHER_STREAM = 7, 11
-
-
-def shares_possible(config: SolverConfig, receivers: int) -> bool:
-    """A shared run can take this job: accuracy mode with the direct light gathered, and at most
-    MAX_ANALYTIC_RECEIVERS receivers (where the exact gather, and so the final plan, is used).
-    The lights must also make exact-form-factor polygons: the direct shares find out
-    (``direct_pilot`` returns None, and the job divides space instead)."""
-    return by_accuracy(config) and config.direct and 0 < receivers <= MAX_ANALYTIC_RECEIVERS
 
 
 def _morton_runs(patches: Patches, weight: np.ndarray) -> list[np.ndarray]:

@@ -7,7 +7,7 @@ import pytest
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.divide import AUTO_DIVIDE_PATCHES, SHARE_PATCHES, DivideConfig, auto_workers, solve_divided
+from dcrad.divide import DivideConfig, solve_divided
 from dcrad.energy import rms_error
 from dcrad.pipeline import prepare
 from dcrad.solver import Solver
@@ -229,17 +229,38 @@ def test_placement_evens_the_expected_work_against_the_best_split():
 
 
 def test_default_workers_follow_the_run_not_only_the_size():
-    """`dcrad solve`'s default: two local workers sharing the run where accuracy mode gathers the
-    light (share.py) and the scene is big enough, two dividing it for big shooting runs, one
-    process for small ones or on one CPU; the report's line says why."""
+    """`dcrad solve`'s default (strategy.local): two local workers sharing the run where accuracy
+    mode gathers the light (share.py) and the scene is big enough, two dividing it for big shooting
+    runs, one process for small ones or on one CPU; the report's line says why."""
+    from dcrad.strategy import AUTO_DIVIDE_PATCHES, SHARE_PATCHES, local
+
     big = 4 * AUTO_DIVIDE_PATCHES
-    assert auto_workers(big, 2, gathers=False)[0] == 2
-    workers, why = auto_workers(big, 2, gathers=True)
-    assert workers == 2 and "sharing" in why
-    workers, why = auto_workers(SHARE_PATCHES // 2, 2, gathers=True)
-    assert workers == 0 and str(SHARE_PATCHES) in why
-    assert auto_workers(AUTO_DIVIDE_PATCHES // 2, 2)[0] == 0
-    assert auto_workers(big, 1)[0] == 0
+    assert local(big, 2, gathered=False).workers == 2
+    s = local(big, 2, gathered=True)
+    assert (s.workers, s.kind, s.why.code) == (2, "shared", "workers") and "sharing" in s.why.text
+    s = local(SHARE_PATCHES // 2, 2, gathered=True)
+    assert s.workers == 0 and s.kind == "single" and str(SHARE_PATCHES) in s.why.text
+    assert local(AUTO_DIVIDE_PATCHES // 2, 2).workers == 0
+    assert local(big, 1).workers == 0
+
+
+def test_the_coordinator_shares_runs_that_gather_and_divides_the_rest():
+    """strategy.on_workers: shared where accuracy mode gathers the direct light exactly and no
+    subscenes were asked for; divided (two subscenes a worker, or those asked for) for a tolerance
+    run, too many receivers for exact form factors, or a resumed divided job; each says why."""
+    from dcrad.direct import MAX_ANALYTIC_RECEIVERS
+    from dcrad.strategy import on_workers
+
+    acc = SolverConfig(accuracy=0.02)
+    s = on_workers(acc, 5000, 6000, live=3)
+    assert (s.kind, s.workers, s.subscenes, s.why.code) == ("shared", 3, 1, "strategy")
+    s = on_workers(acc, 5000, 60_000, live=3, subscenes=5)
+    assert (s.kind, s.subscenes) == ("divided", 5) and "asked for" in s.why.text
+    s = on_workers(SolverConfig(tol=0.01), 5000, 60_000, live=3)
+    assert (s.kind, s.subscenes) == ("divided", 6) and "does not gather" in s.why.text
+    s = on_workers(acc, MAX_ANALYTIC_RECEIVERS + 1, 2 * MAX_ANALYTIC_RECEIVERS, live=2)
+    assert s.kind == "divided" and str(MAX_ANALYTIC_RECEIVERS) in s.why.text
+    assert on_workers(acc, 5000, 60_000, live=2, resumed=True).kind == "divided"
 
 
 def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatch):

@@ -104,7 +104,10 @@ def test_the_service_reproduces_the_in_process_divided_report(reports):
     divided, service = reports["divided"], reports["service"]
     # same seed, same partition, same numerics: the same books
     assert service["warnings"] == divided["warnings"]
-    assert service["choices"] == divided["choices"]
+    # the service says in addition how it chose to run the job (strategy.on_workers)
+    strategy = [c for c in service["choices"] if c["code"] == "strategy"]
+    assert len(strategy) == 1 and strategy[0]["text"].startswith("divided into the")
+    assert [c for c in service["choices"] if c["code"] != "strategy"] == divided["choices"]
     for account, value in divided["ledger"].items():
         assert np.allclose(service["ledger"][account], value, rtol=1e-12, atol=1e-15), account
     for key in ("shots", "rays", "batches", "barriers", "stopped_by"):

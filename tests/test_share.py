@@ -183,6 +183,7 @@ def test_two_workers_share_a_job_bit_identically(office, table, tmp_path):
     assert report["stats"]["rays"] == run.stats.rays
     assert report["ledger"]["closure"] < 1e-10
     assert any(c["code"] == "shared" and c["text"].startswith("shared run on 2 workers") for c in report["choices"])
+    assert any(c["code"] == "strategy" and c["text"].startswith("shared by the 2 worker(s)") for c in report["choices"])
     assert any(c["code"] == "unused_flags" and c["text"].startswith("--iterations 8: for divided runs only")
                for c in report["choices"])
     # the status page's barriers: direct, shoot, each gather round
