@@ -65,7 +65,7 @@ MARGIN = 0.9
 #: gathers the direct light with SHADOW_SHARE * d / patches shadow rays per receiver.
 #: Measured on Cornell (23680 patches) and the office 3x3 (19884) at 1.3-1.4% of the
 #: reflected light: 3e5 rays per power shot with an 8-ray floor, 16-32 shadow rays and 256
-#: gather rays per patch were the cheapest mix (bench/RESULTS.md, issue 13 second session).
+#: gather rays per patch were the cheapest mix (bench/RESULTS.md).
 SHOOT_SHARE = 0.02
 FINAL_SHARE = 0.2
 SHADOW_SHARE = 0.03

@@ -2,7 +2,7 @@
 
 numpy 2.4's ``a.sum(axis=0)`` and ``a.sum(axis=1)`` on an (m, 3) float64 array
 run a strided reduction: 8-16 ms for m = 262144 on the bench machine, against
-0.2-1 ms for the same sums taken column by column (bench/RESULTS.md, issue 12).
+0.2-1 ms for the same sums taken column by column (bench/RESULTS.md).
 The solver sums per batch arrays of exactly this shape (ray power, power per
 patch hit), so these two helpers stand in for them on the hot path.  Likewise
 ``take_rows`` / ``put_rows`` stand in for ``a[rows]`` and ``a[rows] = v`` on the

@@ -148,7 +148,8 @@ class DivideConfig:
 
     subscenes: int = setting(2, "number of cells k (1: no partition, no twins)")
     iterations: int = setting(0, "batches per subscene between barriers (0: adaptive, at most max_iterations)")
-    # 64 -> 256: office 8x8 on 2 workers, 8 -> 4 barriers and the critical path 187M -> 163M rays (issue 14)
+    # long enough that barriers are few against the work between them: on the office 8x8 on 2 workers
+    # 256 needed half the barriers of 64 and a shorter critical path (bench/RESULTS.md)
     max_iterations: int = setting(256, "most batches per subscene between barriers when adaptive")
     solid: int = setting(8, "direction bins per side of a portal cell: SOLIDANGLES = solid^2")
     cell_size: float = setting(0.0, "portal cell edge in m (0: 1/128 of the scene diagonal)")

@@ -313,8 +313,8 @@ def merge(a: DirectTally, b: DirectTally, patches: Patches) -> DirectTally:
 #: used (the sampled one is): CPU time, about 2 us a pair (the 8x8 office; memory is bounded:
 #: CHUNK_PAIRS)
 MAX_PAIRS = 64
-#: receivers above which the analytic gather is not used (measured, one process, bench/RESULTS.md
-#: issue 13): the 8x8 office (201k patches) at 2% went 304M -> 49M rays and 92 -> 33 CPU s with it;
+#: receivers above which the analytic gather is not used (measured, one process, bench/RESULTS.md):
+#: the 8x8 office (201k patches) at 2% went 304M -> 49M rays and 92 -> 33 CPU s with it;
 #: the 20x20 office at 0.4 m (1.27M) at 5% halved its rays but took 1.3-1.5x the CPU and peaked
 #: at 1.55 GB.  With the gather's kernel and memory reworked it takes 0.85x shooting's CPU there
 #: and itself peaks at 1.09 GB, but the run (final.py's rounds, the output render) still peaks at

@@ -773,8 +773,8 @@ WORK_PER_PATCH_W = 4.5e-4
 #: what the automatic cut balances (partition's ``work``): "light", a patch share plus twice the
 #: emitted share (partition.LIGHT_WEIGHT).  By area, the 20x20 office's 16 cells held 7 to 16 lit
 #: rooms and the slowest cell's iterates took 1.24-1.39x the mean (their CPU s follow their lamps'
-#: W, correlation 0.99); by light 12 or 13, and 1.10-1.12x (bench/RESULTS.md, issue 14, fifth
-#: session).  Not by lamps alone (W emitted + WORK_PER_PATCH_W a patch, tried): where one room
+#: W, correlation 0.99); by light 12 or 13, and 1.10-1.12x (bench/RESULTS.md).  Not by lamps
+#: alone (W emitted + WORK_PER_PATCH_W a patch, tried): where one room
 #: holds all the lamps (the 1x2 office of tests/test_divide.py) that cut the lit room in half
 #: rather than follow the wall; the patch share keeps the wall (score 0.83 against 1.0 across)
 CUT_WORK = "light"
@@ -786,7 +786,7 @@ def expected_work(patches: Patches) -> float:
     Progressive refinement at a fixed power per ray traces rays in proportion to the power
     it shoots, and a cell shoots its lamps' light and what that light reflects there: on
     the 8x8 office at the default accuracy each cell's iterate CPU seconds were 0.028-0.033 s
-    per W of its own lamps at k = 4 and k = 8 (bench/RESULTS.md, issue 14).  Light that crosses
+    per W of its own lamps at k = 4 and k = 8 (bench/RESULTS.md).  Light that crosses
     in from neighbours is about what crosses out, so the cell's own lamps predict its work.
     """
     return float(patches.emitted_power.sum()) + WORK_PER_PATCH_W * len(patches)

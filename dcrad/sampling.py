@@ -100,7 +100,7 @@ def rank1_lattice(index: np.ndarray, m: int, shift: np.ndarray) -> np.ndarray:
     returns (M, 2) float64 in [0, 1): (i/m, i z/m) + shift mod 1, z = ``korobov_generator(m)``.
     A lattice of fixed size has lower discrepancy than the first m points of the R_2 sequence:
     the final gather's sampling noise on Cornell at 164 rays a receiver fell 1.34x in variance
-    (0.0102 -> 0.0088 of the reflected light; bench/RESULTS.md, issue 13 fourth session).
+    (0.0102 -> 0.0088 of the reflected light; bench/RESULTS.md).
     """
     z = korobov_generator(int(m))
     index = np.asarray(index, np.int64)
