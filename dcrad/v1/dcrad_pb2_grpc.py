@@ -449,8 +449,9 @@ class WorkerServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Share(self, request_iterator, context):
-        """One share of a shared run; the reply streams its result arrays (direct: a tally; replica:
-        the replica's state).  NOT_FOUND when no patch table was sent and none is held for the job.
+        """One share of a shared run; the reply streams its result arrays (pilot: need and weight;
+        direct: a tally, tally_*; replica: the replica's state; gather: sum_a, sum_b, traced; stop:
+        none).  NOT_FOUND when no patch table (or, for a gather, no shot solution) is held for the job.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
