@@ -51,7 +51,7 @@ import numpy as np
 from .accuracy import final_plan, resolve
 from .choices import Choice, Choices
 from .config import SolverConfig
-from .direct import AnalyticGather, DirectTally, merge, shared_rate
+from .direct import AnalyticGather, DirectTally, GatherStopped, merge, shared_rate
 from .emitters import check_single
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .final import FinalGather
@@ -137,22 +137,23 @@ def shared_noise(patches: Patches, direct: DirectTally) -> float:
 
 
 def direct_pilot(patches: Patches, config: SolverConfig, tracer: Tracer, rows: np.ndarray,
-                 index: int) -> AnalyticGather | None:
+                 index: int, should_stop=None) -> AnalyticGather | None:
     """Share ``index``'s exact direct gather over ``rows``, after its pilot (its ``need`` and
     ``weight`` set the shared rate, ``direct.shared_rate``); None: the lights make no exact
     polygons, or there is no final plan (``Solver.direct_pilot``).  Its random stream is
-    (seed, DIRECT_STREAM, index), so a share piloted again gathers the same light."""
+    (seed, DIRECT_STREAM, index), so a share piloted again gathers the same light.  ``should_stop()``
+    True between two runs of cells raises direct.GatherStopped (a worker's share of a cancelled job)."""
     solver = Solver(patches, config, tracer=tracer)
     rng = np.random.default_rng([solver.config.seed, DIRECT_STREAM, index])
-    return solver.direct_pilot(np.asarray(rows, np.int64), rng)
+    return solver.direct_pilot(np.asarray(rows, np.int64), rng, should_stop)
 
 
 def direct_share(patches: Patches, config: SolverConfig, tracer: Tracer, rows: np.ndarray, index: int,
-                 rate: float, held: AnalyticGather | None = None) -> DirectTally | None:
+                 rate: float, held: AnalyticGather | None = None, should_stop=None) -> DirectTally | None:
     """Share ``index``'s exact direct gather over ``rows`` at the shared ``rate``; ``held``: its pilot
-    (None: piloted here first)."""
-    pilot = held if held is not None else direct_pilot(patches, config, tracer, rows, index)
-    return None if pilot is None else pilot.finish(rate)
+    (None: piloted here first).  ``should_stop``: as ``direct_pilot``."""
+    pilot = held if held is not None else direct_pilot(patches, config, tracer, rows, index, should_stop)
+    return None if pilot is None else pilot.finish(rate, should_stop)
 
 
 @dataclass
@@ -288,11 +289,13 @@ def estimate_of(patches: Patches, noise: NoiseTally, shot: Shot) -> Estimate:
 
 
 def gather_share(patches: Patches, config: SolverConfig, tracer: Tracer, shot: Shot, rows: np.ndarray, index: int,
-                 rounds: list[int], held: FinalGather | None = None) -> tuple[FinalGather, int]:
+                 rounds: list[int], held: FinalGather | None = None, should_stop=None) -> tuple[FinalGather, int]:
     """Share ``index``'s final gather over ``rows`` reading ``shot``: ``rounds`` rays per receiver in
     each round so far (round r draws from its own stream: seed, GATHER_STREAM, r, index).  ``held``:
     this share's gather of the rounds before (a worker keeps it), continued when it matches, else
-    the rounds are traced again.  Returns (the gather, rays traced now); its sums are the share's."""
+    the rounds are traced again.  Returns (the gather, rays traced now); its sums are the share's.
+    ``should_stop()`` True between two batches raises direct.GatherStopped: a share cut short has
+    no sums a shared run could use (a worker's share of a cancelled job)."""
     if held is not None and held.per_half * 2 == sum(rounds[:-1]) and np.array_equal(held.rec, rows):
         fg, todo = held, [len(rounds) - 1]
     else:
@@ -300,7 +303,11 @@ def gather_share(patches: Patches, config: SolverConfig, tracer: Tracer, shot: S
         fg = FinalGather(patches, tracer, shot.diff, shot.direct, shot.direct_a, config.batch_rays, rows=rows)
         todo = list(range(len(rounds)))
     seed = resolve(config).seed
-    traced = sum(fg.add(rounds[r], np.random.default_rng([seed, GATHER_STREAM, r, index])) for r in todo)
+    traced = 0
+    for r in todo:
+        traced += fg.add(rounds[r], np.random.default_rng([seed, GATHER_STREAM, r, index]), should_stop)
+        if fg.stopped:
+            raise GatherStopped
     return fg, traced
 
 

@@ -495,7 +495,7 @@ class Solver:
                 shadow = max(int(shadow * f), MIN_BUDGET_SHADOW) if f < 1.0 else shadow  # f = 0: none fit
         return emitters, amounts, power, shadow, lights, plan
 
-    def direct_pilot(self, rows: np.ndarray, rng: np.random.Generator) -> AnalyticGather | None:
+    def direct_pilot(self, rows: np.ndarray, rng: np.random.Generator, should_stop=None) -> AnalyticGather | None:
         """The exact direct gather of the receivers ``rows`` only, after its pilot pass
         (``AnalyticGather``: ``finish(rate)`` gathers): one worker's share of a shared run
         (share.py); None when the scene has no exact-form-factor lights or no final plan (a
@@ -507,7 +507,7 @@ class Solver:
         if lights is None or plan is None:
             return None
         return AnalyticGather(self.patches, self.tracer, emitters, power, lights, shadow, rng,
-                              ray_offset(self.patches), self.config.batch_rays, rows)
+                              ray_offset(self.patches), self.config.batch_rays, rows, should_stop)
 
     def gather(self, should_stop=None) -> int:
         """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.

@@ -311,3 +311,29 @@ def test_a_shared_run_keeps_to_its_time_limit(table):
     assert run.stats.stopped_by == "time_limit" and run.rounds == []
     assert run.ledger.closure() < 1e-10
     assert all(r.stopped_by == "time_limit" for r in run.replicas)
+
+
+def test_a_worker_s_direct_and_gather_shares_stop_when_asked(table, monkeypatch):
+    """A cancelled job's shares on a worker stop at their next batch (the worker answers CANCELLED):
+    the direct share between runs of cells, the gather share between batches of receivers, each
+    raising GatherStopped rather than returning partial sums a shared run would read as whole;
+    not asked, they run as before."""
+    from dcrad import direct as direct_mod
+    from dcrad.direct import GatherStopped
+    from dcrad.share import direct_share, gather_share
+
+    patches, tracer = table
+    patches.reset()
+    cfg = SolverConfig(accuracy=ACCURACY, seed=5, batch_rays=4096, max_rays_per_shot=4096)
+    rows = receiver_shares(patches, 2)[0]
+    monkeypatch.setattr(direct_mod, "CHUNK_PAIRS", 2000)  # several runs of cells
+    with pytest.raises(GatherStopped):
+        direct_share(patches, cfg, tracer, rows, 0, 1.0, None, lambda: True)
+    tally = direct_share(patches, cfg, tracer, rows, 0, 1.0, None, lambda: False)
+    assert tally is not None and len(tally.hit) > 0
+    n = len(patches)
+    shot = Shot(patches.radiosity.copy(), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), None, None)
+    with pytest.raises(GatherStopped):
+        gather_share(patches, cfg, tracer, shot, rows, 0, [8], None, lambda: True)
+    fg, traced = gather_share(patches, cfg, tracer, shot, rows, 0, [8], None, lambda: False)
+    assert traced > 0 and not fg.stopped and (fg.counts == 4).all()

@@ -19,6 +19,7 @@ import numpy as np
 
 from coordinator.rpc import shutdown, start_server, stop_on_signals
 from dcrad.config import SolverConfig
+from dcrad.direct import GatherStopped
 from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
 from dcrad.patches import Patches
@@ -191,8 +192,13 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                 if len(rows) and (rows.min() < 0 or rows.max() >= len(patches)):
                     raise ValueError(f"share rows outside 0..{len(patches) - 1}")
                 key = (job, header.index)
+                # a cancelled job's share stops at its next batch (the stop phase, or the caller gone)
+                def stopping() -> bool:
+                    return cancelled.is_set() or stop.is_set()
+
                 if header.phase == "pilot":
-                    pilot = await asyncio.to_thread(direct_pilot, patches, config, tracer, rows, header.index)
+                    pilot = await asyncio.to_thread(direct_pilot, patches, config, tracer, rows, header.index,
+                                                    stopping)
                     if pilot is not None:
                         self.pilots[key] = pilot
                     out = {} if pilot is None else {"pilot": np.array([pilot.need, pilot.weight])}
@@ -202,7 +208,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                     if held is not None and not np.array_equal(held.receivers, rows):
                         held = None
                     got = await asyncio.to_thread(direct_share, patches, config, tracer, rows, header.index, rate,
-                                                  held)
+                                                  held, stopping)
                     out = {} if got is None else tally_to_arrays(got)
                 elif header.phase == "gather":
                     if "shot_radiosity" in arrays:  # sent once a job: every gather share reads it
@@ -213,15 +219,18 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                                                                        f"worker: send it with the gather share")
                     rounds = [int(r) for r in arrays["rounds"]]
                     fg, traced = await asyncio.to_thread(gather_share, patches, config, tracer, shot, rows,
-                                                         header.index, rounds, self.gathers.get(key))
+                                                         header.index, rounds, self.gathers.get(key), stopping)
                     self.gathers[key] = fg
                     out = {"sum_a": fg.sum_a, "sum_b": fg.sum_b, "traced": np.array([traced], np.int64)}
                 else:
                     tally = tally_from_arrays({k[len("tally_"):]: v for k, v in arrays.items()
                                                if k.startswith("tally_")}, len(patches))
                     rep = await asyncio.to_thread(run_replica, patches, config, tracer, tally, header.index,
-                                                  header.count, lambda: cancelled.is_set() or stop.is_set())
+                                                  header.count, stopping)
                     out = rep.to_arrays()
+            except GatherStopped:
+                await context.abort(grpc.StatusCode.CANCELLED, f"{header.phase} share {header.index} of job {job} "
+                                                               f"stopped: the job was cancelled")
             except KeyError as exc:
                 await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {header.phase} share: "
                                                                       f"the request has no array {exc}")
