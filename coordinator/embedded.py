@@ -156,7 +156,7 @@ class LocalCluster:
                                     text=True, env=env, stdin=subprocess.DEVNULL,
                                     # a process group of its own, so a terminal Ctrl-C reaches only the parent;
                                     # the parent's session, so its scheduler autogroup: the coordinator's
-                                    # background threads (nice 10, jobs.background) yield to the workers
+                                    # background threads (nice 10, display.background) yield to the workers
                                     process_group=0)
 
     def start_worker(self) -> int:

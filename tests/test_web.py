@@ -27,8 +27,8 @@ import pytest
 
 import scenes
 from coordinator import client
+from coordinator.display import ErrorCurve, LivePreview
 from coordinator.embedded import LocalCluster
-from coordinator.jobs import ErrorCurve, LivePreview
 from dcrad.v1 import dcrad_pb2 as pb
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -351,7 +351,7 @@ def test_display_never_blocks_the_barrier_and_bounds_preview_cost(tmp_path):
     interval."""
     import threading
 
-    from coordinator.jobs import PREVIEW_SHARE, BarrierDisplay
+    from coordinator.display import PREVIEW_SHARE, BarrierDisplay
     from dcrad.pipeline import prepare
 
     scene, patches, _ = prepare(scenes.write_builtin("cornell", tmp_path / "c"))
