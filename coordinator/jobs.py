@@ -343,11 +343,7 @@ class JobManager:
         if strategy.kind == "shared":
             if self._solve_shared(job, scene, patches, size, config, timings, mem, strategy.why):
                 return
-            # the lights make no exact form factors: the job divides space after all
-            strategy = on_workers(config, 0, len(patches), live, spec.divide.subscenes)
-            strategy = dataclasses.replace(strategy, why=Choice("strategy", (
-                f"divided into {strategy.subscenes} subscenes: the lights make no exact-form-factor polygons, "
-                f"which a shared run's direct shares need")))
+            strategy = on_workers(config, receivers, len(patches), live, spec.divide.subscenes, exact_lights=False)
         divide = self._divide(spec, strategy.subscenes)
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
         t0 = time.perf_counter()

@@ -25,6 +25,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from .accuracy import resolve
+from .choices import Choice
 from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
 from .divide import SUBSCENES_PER_WORKER
 from .errors import DcradError
@@ -151,7 +152,7 @@ def cmd_solve(args) -> int:
     return 0
 
 
-def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
+def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
     """--workers by default: from the scene's unknowns (meshed here, or estimated when too large to
     mesh) and the CPUs; and, when it chooses this process, (scene, load seconds, path, patches or
     None) for the solve to reuse (a
@@ -163,7 +164,8 @@ def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
     from .strategy import gathers, local
 
     if args.planes or args.subscenes > 1:
-        return 0, "solved in this process (--workers 0 by default with --planes or --subscenes)", None
+        return 0, Choice("workers", "solved in this process (--workers 0 by default with --planes or "
+                                    "--subscenes)"), None
     builtin = not Path(args.scene).exists()
     fresh = builtin and not (out / "scene").exists()
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
@@ -182,21 +184,21 @@ def _auto_workers(args, out: Path) -> tuple[int, str, tuple | None]:
         patches = scene.patches(size)
         n = patches.units
     strategy = local(n, os.cpu_count() or 1, gathers(config, n))
-    workers, choice = strategy.workers, strategy.why.text
+    workers, choice = strategy.workers, strategy.why
     if workers > 0 and fresh:  # the workers' run writes its own copy; out/ keeps only what it wrote
         shutil.rmtree(out / "scene", ignore_errors=True)
     return workers, choice, (scene, seconds, path, patches) if workers == 0 else None
 
 
-def _note_choice(out: Path, choice: str | None) -> None:
-    """Add the default's choice of workers to report.json's ``choices`` (choices.py: code ``workers``)."""
+def _note_choice(out: Path, choice: Choice | None) -> None:
+    """Add the default's choice of workers to report.json's ``choices``."""
     import json
 
     path = out / "report.json"
     if choice is None or not path.exists():
         return
     report = json.loads(path.read_text())
-    report["choices"] = [{"code": "workers", "text": choice}] + list(report.get("choices", []))
+    report["choices"] = [choice.as_dict()] + list(report.get("choices", []))
     path.write_text(json.dumps(report, indent=1))
 
 

@@ -301,18 +301,17 @@ class FinalGather:
         """(B (n,3), D (n,3), mismatch (3,) W) of the sums so far (sum_a, sum_b over each receiver's
         rays).  Receivers a stopped first round did not reach keep the shot solution's B and D, and
         the gathered ones keep their own reflected total (the scale below is over them alone)."""
-        if self.stopped and not (self.counts > 0).all():
-            return self._partial()
-        p, rec = self.patches, self.rec
+        p = self.patches
+        if self.stopped:  # by each receiver's own rays; those a stopped first round missed: none
+            done = self.counts > 0
+            rec, sum_a, sum_b, rays = self.rec[done], self.sum_a[done], self.sum_b[done], self.counts[done, None]
+        else:
+            rec, sum_a, sum_b, rays = self.rec, self.sum_a, self.sum_b, self.per_half
         refl = self.radiosity - p.emission
         area = p.area[rec][:, None]
         rho = p.rho[rec]
-        if self.stopped:  # every receiver gathered, some with fewer rays (a stopped later round)
-            q_a = self.sum_a * area / self.counts[:, None]
-            q_b = self.sum_b * area / self.counts[:, None]
-        else:
-            q_a = self.sum_a * area / self.per_half
-            q_b = self.sum_b * area / self.per_half
+        q_a = sum_a * area / rays
+        q_b = sum_b * area / rays
         q = 0.5 * (q_a + q_b)
         refl_rec = refl[rec]
         del refl
@@ -337,17 +336,6 @@ class FinalGather:
         del q_b
         d[rec] = rho * (dir_diff + scale * q_a) / area
         return b, d, mismatch
-
-    def _partial(self):
-        """``solution`` over the receivers reached so far; the others keep the shot B and D."""
-        done = self.counts > 0
-        whole = (self.rec, self.sum_a, self.sum_b, self.counts, self.stopped)
-        self.rec, self.sum_a, self.sum_b, self.counts = (self.rec[done], self.sum_a[done], self.sum_b[done],
-                                                         self.counts[done])
-        try:
-            return self.solution()
-        finally:
-            self.rec, self.sum_a, self.sum_b, self.counts, self.stopped = whole
 
 
 def final_gather(patches: Patches, tracer: Tracer, rays: int, rng: np.random.Generator, diff: np.ndarray,

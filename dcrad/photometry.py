@@ -436,7 +436,7 @@ def direct_irradiance(patches, tracer: Tracer, corners: np.ndarray, normals: np.
     light (``_patch_direct``) and the light sources' that are not patches (emitters.Emitter: exact,
     at the rule's points)."""
     out, rays = _patch_direct(patches, tracer, corners, normals, seed, emitters)
-    sources = getattr(patches, "sources", ())
+    sources = patches.sources
     if not sources or len(out) == 0:
         return out, rays
     corners = np.asarray(corners, np.float64)

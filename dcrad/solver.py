@@ -565,12 +565,15 @@ class Solver:
                else "next-event estimation,")
         # the exact form factors gather every receiver at once (their pilot finds penumbrae by
         # neighbourhood: on a sparse share of the receivers it would find few), then compare
+        def abandoned(rays: int) -> int:  # a stop request ended the gather: nothing of it is booked
+            self.stats.trace_seconds += time.perf_counter() - t0
+            self.choices.add("direct", GATHER_STOPPED)
+            return self.counted(0, rays) if rays else 0
+
         try:
             gathered = preset if preset is not None else gather_for(pilot if lights is None else receivers)
         except GatherStopped:
-            self.stats.trace_seconds += time.perf_counter() - t0
-            self.choices.add("direct", GATHER_STOPPED)
-            return 0
+            return abandoned(0)
         shadow_counted = 0 if preset is not None else gathered.rays
         self.stats.trace_seconds += time.perf_counter() - t0
         quiet, loud = noise_against_shooting(p, gathered, power, self.power_per_ray)
@@ -604,9 +607,7 @@ class Solver:
             try:
                 gathered = merge(gathered, gather_for(rest), p)
             except GatherStopped:
-                self.stats.trace_seconds += time.perf_counter() - t0
-                self.choices.add("direct", GATHER_STOPPED)
-                return self.counted(0, gathered.rays)
+                return abandoned(gathered.rays)
             self.stats.trace_seconds += time.perf_counter() - t0
         # the emitters' own rays: how much of their power lands (the books), not where
         total = power.sum(axis=1)

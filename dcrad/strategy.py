@@ -87,12 +87,13 @@ def local(units: int, cpus: int, gathered: bool = False) -> Strategy:
 
 
 def on_workers(config: SolverConfig, receivers: int, patches: int, live: int, subscenes: int = 0,
-               resumed: bool = False) -> Strategy:
+               resumed: bool = False, exact_lights: bool = True) -> Strategy:
     """The coordinator's choice for a job on ``live`` workers: shared when the run takes the final
     plan and no subscenes were asked for (``subscenes`` 0) and it is not resumed from a divided
     run's checkpoints; divided otherwise, into the subscenes asked for or SUBSCENES_PER_WORKER a
-    worker (at most ``divide.subscene_limit`` of ``patches``)."""
-    if not subscenes and not resumed and shares_possible(config, receivers):
+    worker (at most ``divide.subscene_limit`` of ``patches``).  ``exact_lights`` False: a shared
+    run's direct shares found the lights make no exact-form-factor polygons, and the job divides."""
+    if not subscenes and not resumed and exact_lights and shares_possible(config, receivers):
         return Strategy("shared", live, 1, Choice("strategy", (
             f"shared by the {live} worker(s), each holding the whole scene: accuracy mode with the direct light "
             f"gathered exactly ({receivers} receiving patches, at most {MAX_ANALYTIC_RECEIVERS}) takes the final "
@@ -100,6 +101,9 @@ def on_workers(config: SolverConfig, receivers: int, patches: int, live: int, su
     k = subscenes or min(SUBSCENES_PER_WORKER * live, subscene_limit(patches))
     if resumed:
         why = "divided: resumed from its checkpoints"
+    elif not exact_lights:
+        why = (f"divided into {k} subscenes: the lights make no exact-form-factor polygons, which a shared "
+               f"run's direct shares need")
     elif subscenes:
         why = f"divided into the {subscenes} subscenes asked for"
     elif not by_accuracy(config) or not config.direct:

@@ -148,9 +148,10 @@ def test_bias_layout_follows_the_rooms_the_light_is_in():
     p = Patches(vertices, np.arange(3 * n).reshape(n, 3), np.full((n, 3), 0.5), np.zeros((n, 3)),
                 np.arange(n), np.zeros(n, np.int32))
     tally = NoiseTally(p)
-    assert not set(tally._cell[room == 0]) & set(tally._cell[room == 1])
     p.radiosity[:] = np.where(room[:, None] == 0, 0.5 * rng.random((n, 1)) * 4.0, 0.0)  # rho H, H ~ U(0, 4)
     tally.resync(p)
+    assert tally._cell is not None
+    assert not set(tally._cell[room == 0]) & set(tally._cell[room == 1])
     s = tally.sums()
     g = np.full(3, 0.1)
     uniform = combine(NoiseSums(b2=s.b2, r2=s.r2, area=s.area, rho1=s.rho1, rho2=s.rho2), g)
