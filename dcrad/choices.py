@@ -14,6 +14,7 @@ Codes (stable; the report's readers may rely on them):
 ``grey``            one colour channel solved, not three
 ``direct``          whether the direct light was gathered or shot, and how
 ``plan``            the accuracy plan (shoot coarsely, gather at the end)
+``density``         a first pass that shoots its light at a share of the density, to measure the noise
 ``budget``          how a ray budget or time limit cut the plan
 ``final_gather``    the final gather of the indirect light
 ``pass``            an earlier accuracy pass (its own ``direct`` entries relabelled)
@@ -36,8 +37,9 @@ from dataclasses import dataclass
 
 __all__ = ["Choice", "Choices", "CODES"]
 
-CODES = ("workers", "strategy", "mesh", "clusters", "grey", "direct", "plan", "budget", "final_gather", "pass",
-         "passes", "accuracy", "noise_floor", "stiff", "subscenes", "barriers", "shared", "unused_flags", "resumed")
+CODES = ("workers", "strategy", "mesh", "clusters", "grey", "direct", "plan", "density", "budget", "final_gather",
+         "pass", "passes", "accuracy", "noise_floor", "stiff", "subscenes", "barriers", "shared", "unused_flags",
+         "resumed")
 
 
 @dataclass(frozen=True)

@@ -194,6 +194,13 @@ def finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def _kept_spread(spread: np.ndarray, noise: np.ndarray, kept: np.ndarray) -> float:
+    """The kept clusters' S - N summed, not each one's positive part: S - N is an unbiased estimate
+    of a cluster's own spread, and over thousands of uniform clusters the positive parts add up their
+    noise (the ice-cream store's 6,141 clusters read 1.5% of bias from a first pass's noise)."""
+    return max(float((spread - noise)[kept].sum()), 0.0)
+
+
 class NoiseTally:
     """Per-patch half-solution differences and the area-weighted sums of one (sub)scene.
 
@@ -238,14 +245,33 @@ class NoiseTally:
         against what their noise alone would spread, N = sum A |D_i|^2 / 4 (1 - A_i / A_c)
         (D_i / 2 is patch i's noise).  Where S > ``margin`` N the light varies across the cluster
         (a door lintel under the ceiling: 0.48 to 0.92 W/m^2 within one cell): its patches keep
-        their own B (``patches.cluster`` set to -1).  The kept clusters' S - N, where positive, is
-        the bias pooling leaves (``pool_bias``).  Regroups and resyncs the sums.  Returns
+        their own B (``patches.cluster`` set to -1).  The kept clusters' S - N, summed, is the bias
+        pooling leaves (``pool_bias``, ``_kept_spread``).  Regroups and resyncs the sums.  Returns
         (clusters kept, clusters undone).  N is itself an estimate from the same rays: with a
         margin of 2, 19% of the clusters of a uniformly lit cube were undone; 4 undoes 5% there
         and still every lintel of the generated office (bench/RESULTS.md)."""
+        got = self._spread(patches)
+        if got is None:
+            return 0, 0
+        rows, c, spread, noise = got
+        undo = spread > margin * noise
+        patches.cluster[rows[undo[c]]] = -1
+        self.pool_bias = _kept_spread(spread, noise, ~undo)
+        self._regroup(patches)
+        self.undone += int(undo.sum())
+        return int((~undo).sum()), self.undone
+
+    def repool(self, patches) -> None:
+        """``pool_bias`` again from the B and D the table holds now, no cluster undone (a blend of
+        passes: each pass settled on its own, noisier, solution)."""
+        got = self._spread(patches)
+        self.pool_bias = 0.0 if got is None else _kept_spread(got[2], got[3], np.ones(len(got[2]), bool))
+
+    def _spread(self, patches):
+        """(rows, cluster of each row, S, N) of ``settle`` over the clustered patches, or None."""
         rows = np.flatnonzero(patches.cluster >= 0)
         if not len(rows):
-            return 0, 0
+            return None
         _, c = np.unique(patches.cluster[rows], return_inverse=True)
         a = patches.area[rows]
         r = (patches.radiosity - patches.emission)[rows]
@@ -255,12 +281,7 @@ class NoiseTally:
         spread = np.bincount(c, weights=a * ((r - mean[c]) ** 2).mean(axis=1))
         d2 = (self.diff[rows] ** 2).mean(axis=1) / 4.0
         noise = np.bincount(c, weights=a * d2 * (1.0 - a / np.maximum(total[c], 1e-300)))
-        undo = spread > margin * noise
-        patches.cluster[rows[undo[c]]] = -1
-        self.pool_bias = float(np.maximum(spread - noise, 0.0)[~undo].sum())
-        self._regroup(patches)
-        self.undone += int(undo.sum())
-        return int((~undo).sum()), self.undone
+        return rows, c, spread, noise
 
     # -- the per-batch hooks (Solver.step / Solver.commit) --------------------------
     def shot_diff(self, shooters: np.ndarray, area: np.ndarray) -> np.ndarray:

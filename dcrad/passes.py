@@ -11,19 +11,23 @@ blend is a solution whose books close and whose estimate is that of the blend.
 
 from __future__ import annotations
 
-from .accuracy import MAX_PASSES, pass_target
+from .accuracy import BIAS_SHARE, MAX_PASSES, pass_target
 from .choices import Choice, Choices
 from .config import SolverConfig
 from .energy import ACCOUNTS, MAGNITUDES
 from .noise import finite
 from .solver import Solver
 
-__all__ = ["blend", "solve_to_accuracy", "settle", "PASS_SEED", "PASS_GROWTH"]
+__all__ = ["blend", "solve_to_accuracy", "settle", "PASS_SEED", "PASS_GROWTH", "CALIBRATION", "SPARSER"]
 
 #: each further pass seeds its random streams this much after the pass before
 PASS_SEED = 7919
 #: a further pass is at most this many times denser than the pass before
 PASS_GROWTH = 4.0
+#: a first pass that shoots its light spends this share of the density (Solver.calibrate)
+CALIBRATION = 0.25
+#: the sparsest a pass after a calibrated one may be, against it
+SPARSER = 0.5
 
 
 def blend(solver, saved: dict, weight_saved: float, weight_now: float) -> None:
@@ -60,6 +64,8 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
     its stats, time limit and ray budget count every pass.
     """
     solver = Solver(patches, config, tracer=tracer)
+    if not config.rays_per_power:  # the density is the run's own choice: measure the scene's noise first
+        solver.calibration = CALIBRATION
     solver.run(on_progress=on_progress, should_stop=should_stop)
     goal = solver.config.accuracy
     passes = 1
@@ -67,9 +73,9 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         est, cfg, done = solver.estimate(), solver.config, solver.stats
         saved, weight = _save(solver), 1.0 / max(est.rms, 1e-300) ** 2
         # the pass's direct-light entries become "pass" entries (labelled already after the first pass)
-        earlier = Choices(c if c.code == "pass" else
+        earlier = Choices(c if c.code in ("pass", "density") else
                           Choice("pass", c.text if passes > 1 else f"pass {passes}: {c.text}")
-                          for c in solver.choices.of("direct", "pass"))
+                          for c in solver.choices.of("direct", "pass", "density"))
         # a pass that ended just above the target needs little from the next: its own target can come
         # out above 1 (a closed cube: 1.27), which is no accuracy at all; half the light is plenty
         target = min(pass_target(est.rms_refl, goal), 0.5)
@@ -78,8 +84,15 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         # and never more than PASS_GROWTH times denser: a pass's own noise can be far above what its
         # density predicts (a lamp in a fixture), and escalating by the ratio can ask for 4e9 rays per
         # emitted power, which no run can pay
-        want = max((est.noise_refl / target) ** 2 * 1.1, 1.0)
-        rpp = cfg.rays_per_power * min(want, PASS_GROWTH)
+        # a calibrated pass shot at a share of the density (Solver.calibrate): start from what it spent,
+        # and a pass that shoots all its light may be sparser than the one before (its noise follows
+        # its density: the ice-cream store's first pass read 2.18% at 3.9e6 rays per emitted power,
+        # and a second pass at the same density would pay twice for 1.8%)
+        calibrated = bool(solver.choices.of("density"))
+        density = solver.density() if calibrated else cfg.rays_per_power
+        want = max((est.noise_refl / target) ** 2 * 1.1, SPARSER if calibrated else 1.0)
+        rpp = density * min(want, PASS_GROWTH)
+        shot = solver.gathered and solver.direct_light is None and not solver.final_rays
         if want > PASS_GROWTH:
             earlier.add("pass", f"pass {passes + 1}: the target would want {want:.3g}x the density of pass {passes}; "
                            f"held to {PASS_GROWTH:g}x (passes.PASS_GROWTH)")
@@ -87,6 +100,10 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         # its own random streams: a pass with the same seed would repeat the first one's rays
         solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target, seed=cfg.seed + PASS_SEED),
                         tracer=solver.tracer)
+        # the pass before decided to shoot its direct light after a gather on every receiver (its
+        # pilot): the decision stands, and its shadow rays are not paid twice
+        solver.gathered = shot
+        solver.bias_cap = BIAS_SHARE * goal
         solver.stats.rays, solver.stats.shots, solver.stats.batches = done.rays, done.shots, done.batches
         solver.stats.wall_seconds, solver.stats.trace_seconds = done.wall_seconds, done.trace_seconds
         solver.run(on_progress=on_progress, should_stop=should_stop)
@@ -98,10 +115,11 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
                                             for c in solver.choices])
         solver.choices.add("passes",
             f"accuracy pass {passes}: the passes before ended on their noise floor ({est.rms_refl:.4f} of the "
-            f"reflected light at {cfg.rays_per_power:.3g} rays per emitted power); an independent pass at "
+            f"reflected light at {density:.3g} rays per emitted power); an independent pass at "
             f"{rpp:.3g} reached {now.rms_refl:.4f} and the two were blended by inverse variance")
         reason = solver.stats.stopped_by
         solver.settled_target_error()  # the clusters settle before the blend is judged (the report's estimate)
+        solver.noise.repool(patches)  # ... and their spread is the blend's, not the last pass's alone
         blended = solver.estimate()
         if reason in ("accuracy", "noise_floor", "tolerance"):
             solver.stats.stopped_by = "accuracy" if blended.rms_refl <= goal else "noise_floor"

@@ -223,6 +223,12 @@ class Solver:
         #: rays kept for the final gather under --max-rays (``fit_budget``): the shooting stops short of them
         self.gather_reserve = 0
         self._fitted = False  #: ``fit_budget`` has run
+        #: share of the density a first accuracy pass shoots at when its light is all shot (no final
+        #: plan): passes.solve_to_accuracy sets it (``calibrate``); 1: the whole density
+        self.calibration = 1.0
+        #: a later pass of a blend stops by accuracy only once its unshot light's bias (over RMS(B - E))
+        #: is below this (passes.py): the passes' noise averages down in the blend, their bias does not
+        self.bias_cap = math.inf
         self._fresh_at = -FRESH_EVERY  #: the batch of the last resync ``stop_reason`` asked for
         self._t0 = clock()
 
@@ -683,6 +689,25 @@ class Solver:
             return 1.0
         return max(BUDGET_FIT * left, 0.0) / max(need, 1e-300)  # 0: nothing left (the run stops by the budget)
 
+    def calibrate(self) -> None:
+        """As the shooting starts: a first pass that shoots all its light (no final plan) spends
+        ``calibration`` of the run's density.  The density comes from the unknowns' count and a
+        constant (accuracy.rays_for), but the noise a ray leaves differs from scene to scene
+        (noise^2 x density / unknowns: Cornell 0.32, the classroom 0.15, the ice-cream store 0.073):
+        a sparse first pass measures it, and passes.solve_to_accuracy runs an independent second
+        pass at the density that brings the blend to the target when it is needed.  The blend
+        weighs the passes by inverse variance, so the first pass's rays are not lost."""
+        share = self.calibration
+        if not (0.0 < share < 1.0) or self.final_pending() or not by_accuracy(self.config):
+            return
+        self.power_per_ray /= share
+        self.choices.add("density", f"first pass at {share:g} of the density ({self.density():.3g} rays per emitted "
+                            f"power): its measured noise sets the density of a second pass if one is needed")
+
+    def density(self) -> float:
+        """Rays per emitted power this run's shooting spends."""
+        return float(self.ledger.emitted.sum()) / max(self.power_per_ray, 1e-300)
+
     def fit_budget(self) -> None:
         """Under --max-rays, in accuracy mode, as the shooting starts: when the shooting to its end and
         the final gather (if planned) would not fit in what the budget leaves, coarsen both alike
@@ -790,6 +815,15 @@ class Solver:
             est.triangles_refl = finite(combine(self.noise.triangle_sums(p), ambient, self.noise.pool_bias).rms_refl)
         return est
 
+    def unshot_bias(self) -> float:
+        """The estimate's bias from the light still unshot alone (the clusters' spread left out), over
+        RMS(B - E); 0 while ``bias_cap`` is not set (not needed)."""
+        if not math.isfinite(self.bias_cap):
+            return 0.0
+        p = self.patches
+        return combine(self.noise.sums(), bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho),
+                       0.0).bias_refl
+
     def target_error(self, est: Estimate | None = None) -> float:
         """The error the accuracy target is held to, over RMS(B - E): the estimate's, or for a shared
         run's replica the estimate of the average of ``replicas`` such runs (the shared noise stays,
@@ -860,7 +894,8 @@ class Solver:
                 self._fresh_at = self.stats.batches
                 self.noise.resync(self.patches)
                 est = self.estimate()
-            if self.target_error(est) <= cfg.accuracy and self.settled_target_error() <= cfg.accuracy:
+            if (self.target_error(est) <= cfg.accuracy and self.unshot_bias() <= self.bias_cap
+                    and self.settled_target_error() <= cfg.accuracy):
                 return "accuracy"
             if self.final_pending():
                 if est.bias_refl <= FINAL_BIAS_SHARE * cfg.accuracy:
@@ -895,6 +930,7 @@ class Solver:
             if on_progress is not None:
                 on_progress(self)
         if not self._fitted:
+            self.calibrate()
             self.fit_budget()
         while True:
             reason = self.stop_reason()
