@@ -84,22 +84,26 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         # and never more than PASS_GROWTH times denser: a pass's own noise can be far above what its
         # density predicts (a lamp in a fixture), and escalating by the ratio can ask for 4e9 rays per
         # emitted power, which no run can pay
-        # a calibrated pass shot at a share of the density (Solver.calibrate): start from what it spent,
-        # and a pass that shoots all its light may be sparser than the one before (its noise follows
-        # its density: the ice-cream store's first pass read 2.18% at 3.9e6 rays per emitted power,
-        # and a second pass at the same density would pay twice for 1.8%)
-        calibrated = bool(solver.choices.of("density"))
+        # ... except after a calibrated first pass (Solver.calibrate), which shot at a share of the
+        # density: the next one starts from what it spent, may be sparser (its noise follows its
+        # density: the ice-cream store's first pass read 2.18% at 3.9e6 rays per emitted power, and a
+        # second pass as dense would pay twice for 1.8%) and may grow to PASS_GROWTH times the whole
+        # density (a uniform furnace needed 6.7x its first pass, and at 4x ended on its noise floor)
+        calibrated = passes == 1 and bool(solver.choices.of("density"))
         density = solver.density() if calibrated else cfg.rays_per_power
+        growth = PASS_GROWTH / solver.calibration if calibrated else PASS_GROWTH
         want = max((est.noise_refl / target) ** 2 * 1.1, SPARSER if calibrated else 1.0)
-        rpp = density * min(want, PASS_GROWTH)
+        rpp = density * min(want, growth)
         shot = solver.gathered and solver.direct_light is None and not solver.final_rays
-        if want > PASS_GROWTH:
+        if want > growth:
             earlier.add("pass", f"pass {passes + 1}: the target would want {want:.3g}x the density of pass {passes}; "
-                           f"held to {PASS_GROWTH:g}x (passes.PASS_GROWTH)")
+                           f"held to {growth:g}x (passes.PASS_GROWTH)")
         patches.reset()
         # its own random streams: a pass with the same seed would repeat the first one's rays
-        solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target, seed=cfg.seed + PASS_SEED),
-                        tracer=solver.tracer)
+        # (passes * PASS_SEED: the seed of the run is put back after each blend, and a third pass seeded
+        # like the second repeated its rays, which the blend took for independent ones)
+        solver = Solver(patches, cfg.replace(rays_per_power=rpp, accuracy=target,
+                                             seed=config.seed + passes * PASS_SEED), tracer=solver.tracer)
         # the pass before decided to shoot its direct light after a gather on every receiver (its
         # pilot): the decision stands, and its shadow rays are not paid twice
         solver.gathered = shot
