@@ -21,7 +21,7 @@ from pathlib import Path
 import grpc
 
 from dcrad.config import SolverConfig
-from dcrad.errors import DcradError, SceneFormatError
+from dcrad.errors import ConfigError, DcradError, SceneFormatError
 from dcrad.objfile import inside_folder, mtllib_files, mtllib_name, read_mtl
 from dcrad.pipeline import resolve_scene
 from dcrad.progress import error_text, progress_fraction
@@ -318,6 +318,11 @@ def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
 
 @_handled
 def cmd_submit(args) -> int:
+    if args.luminaires is not None:
+        # the photometric files would have to travel with the job, and a shared or divided run
+        # cannot carry light sources that are not surfaces yet (emitters.check_single)
+        raise ConfigError(f"--luminaires {args.luminaires}: the service does not take luminaire schedules yet; "
+                          f"solve in this process: dcrad solve SCENE --luminaires {args.luminaires} --workers 0")
     address = resolve_address(args.coordinator)
     solver = from_args(SolverConfig, args).as_dict() | scene_values(args)
     # subscenes 0 travels as 0: the coordinator makes one per registered worker

@@ -24,6 +24,7 @@ from .config import SolverConfig
 from .emitters import Emitter
 from .errors import ConfigError
 from .export import input_triangle_radiosity
+from .luminaires import load_schedule
 from .noise import Estimate
 from .patches import Patches
 from .scene import Scene, load_scene
@@ -75,7 +76,7 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
           patch_size: float | None = None, *, scale: float = 1.0, up: str | None = None, two_sided: bool = False,
           workplane: float = 0.0, width: int = 640, height: int = 480,
           on_progress: Callable[[Any], None] | None = None, should_stop: Callable[[], bool] | None = None,
-          sources: Sequence[Emitter] = (), **settings: Any) -> Result:
+          sources: Sequence[Emitter] = (), luminaires: str | os.PathLike | None = None, **settings: Any) -> Result:
     """Solve a scene in this process (one subscene: no partition, no workers) and return a ``Result``.
 
     scene_or_path : a ``Scene`` (``dcrad.load``) or a scene file's path
@@ -93,6 +94,9 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
     should_stop   : polled between batches; True stops the run cleanly (the result is still whole)
     sources       : light sources that are not surfaces of the scene (``dcrad.PointSource``, any
                     ``emitters.Emitter``), in the scene's coordinates after ``scale`` (metres)
+    luminaires    : a luminaire schedule (JSON: photometric files placed in the scene file's own
+                    coordinates and units, ``luminaires.load_schedule``), lighting the scene beside
+                    ``sources``; the report gains a ``luminaires`` section
     settings      : any other ``SolverConfig`` field by name (``seed=3``, ``time_limit=10``, ...)
 
     Raises ``SceneError`` for a bad scene file and ``ConfigError`` for a bad setting.
@@ -109,7 +113,8 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
         scene_or_path if given is None else given.path, patch_size, scale, up, two_sided, timings=phases,
         loaded=None if given is None else (given, 0.0), workplane=workplane)
     timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
-    patches.sources = tuple(sources)
+    placed = load_schedule(luminaires, scene, scale) if luminaires is not None else []
+    patches.sources = (*sources, *placed)
     books, tracer = pipeline.solve_single(patches, config, timings, on_progress, should_stop)
     folder = Path(out) if out is not None else None
     report = pipeline.finish_run(folder, scene, books, pipeline.scene_settings(scene, size, scale, two_sided,

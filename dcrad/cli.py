@@ -110,6 +110,18 @@ def cmd_solve(args) -> int:
 
     check_image_size(args.width, args.height)
     choice, loaded = None, None
+    if args.luminaires is not None:
+        # light sources that are not surfaces run in one process, one subscene, for now
+        # (emitters.check_single): refused here by the flags, before any work or worker starts
+        away = [flag for flag, given in ((f"--workers {args.workers}", (args.workers or 0) > 0),
+                                         (f"--subscenes {args.subscenes}", args.subscenes > 1),
+                                         ("--planes", bool(args.planes))) if given]
+        if away:
+            raise ConfigError(f"--luminaires {args.luminaires}: luminaires are solved in this process, one subscene, "
+                              f"for now (--workers 0), not with {', '.join(away)}")
+        if args.workers is None:
+            args.workers = 0
+            choice = Choice("workers", "solved in this process: luminaires (--luminaires) run in one process for now")
     if args.workers is None:  # the default: divide only where it pays
         args.workers, choice, loaded = _auto_workers(args, Path(args.out))
     check_workers(args.workers)
@@ -141,7 +153,8 @@ def cmd_solve(args) -> int:
                               on_progress=on_progress, should_stop=stop.should_stop,
                               width=args.width, height=args.height, divide=divide, planes=planes or None,
                               up=args.up, two_sided=args.two_sided, workplane=args.workplane,
-                              loaded=(loaded[0], loaded[1], loaded[3]) if loaded is not None else None)
+                              loaded=(loaded[0], loaded[1], loaded[3]) if loaded is not None else None,
+                              luminaires_path=args.luminaires)
     finally:
         _restore(previous)
     final = SimpleNamespace(**report["error"]) if report.get("error") else None
@@ -264,6 +277,10 @@ def _summary(report: dict, out: Path) -> None:
         per_triangle = f", {100 * err['triangles_refl']:.2f}% per input triangle" if err.get("triangles_refl") else ""
         print(f"dcrad: {text}{per_triangle}, {100 * (err['rms_norm'] or 0.0):.2f}% of RMS(B) "
               f"(estimated, {err['rms']:.3g} W/m^2)")
+    from .luminaires import summary_lines
+
+    for line in summary_lines(report.get("luminaires")):
+        print(f"dcrad: {line}")
     print(f"dcrad: wrote {', '.join(report['outputs'].values())}, report.json in {out}")
 
 

@@ -122,11 +122,12 @@ class PointSource:
         dirs, half = sphere_directions(n, rng)
         n_a = int(half.sum())
         n_b = n - n_a
-        per = np.where(half, 0.5 / max(n_a, 1), 0.5 / max(n_b, 1)) if n_b else np.full(n, 1.0 / n)
+        split = n_a > 0 and n_b > 0  # one ray (either half, noise.half_mask) carries it all
+        per = np.where(half, 0.5 / max(n_a, 1), 0.5 / max(n_b, 1)) if split else np.full(n, 1.0 / n)
         power = 4.0 * math.pi * self.intensity_at(dirs) * per[:, None]
         origins = np.broadcast_to(self.position, (n, 3)).copy()
         return RayBatch(origins=origins, dirs=dirs, power=power, shooter=np.zeros(n, np.int64),
-                        half=half if n_b else None)
+                        half=half if split else None)
 
     def irradiance(self, points: np.ndarray, normals: np.ndarray, tracer, offset: float) -> np.ndarray:
         """I(-d) cos / r^2 where the point sees the source (one shadow ray a point: exact)."""

@@ -20,7 +20,7 @@ import numpy as np
 
 import scenes
 
-from . import export, mesh, photometry, render
+from . import export, luminaires, mesh, photometry, render
 from .accuracy import describe, noise_floor_note, resolve
 from .choices import Choice, Choices
 from .config import SolverConfig, unused_divide_note
@@ -369,6 +369,9 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
         if grid is not None:
             section["workplane"] = {k: v for k, v in grid.items() if k not in ("points", "lux")}
         sections["photometry"] = section
+        lums = luminaires.report_section(patches, grid, tracer)
+        if lums is not None:
+            sections["luminaires"] = lums
     return written
 
 
@@ -468,6 +471,10 @@ def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, wid
     outputs = {} if out is None else write_outputs(Path(out), scene, books.patches, width, height, sections,
                                                    float(settings.get("workplane_m") or 0.0), tracer=tracer,
                                                    views=views, painter=painter)
+    if "luminaires" not in sections:  # without outputs: no work plane, the luminaires' figures only
+        lums = luminaires.report_section(books.patches)
+        if lums is not None:
+            sections["luminaires"] = lums
     books.timings["outputs_s"] = time.perf_counter() - t0
     timings = {k: float(books.timings.get(k, 0.0)) for k in TIMINGS} | books.timings
     report = run_report(scene, books, settings, timings, warnings, outputs)
@@ -542,12 +549,14 @@ def solve_to(
     two_sided: bool = False,
     workplane: float = 0.0,
     loaded: tuple | None = None,
+    luminaires_path: str | os.PathLike | None = None,
 ) -> dict:
     """Load, solve and write everything to ``out``; return the report dict.
 
     ``divide`` (a DivideConfig) with more than one subscene solves divided, in
     process; one subscene (the default) uses the plain solver: no partition, no twins.
     ``up``, ``two_sided``, ``workplane``: scene settings (see scene_settings).  ``loaded``: see prepare.
+    ``luminaires_path``: a luminaire schedule (luminaires.load_schedule) lighting the scene too.
     """
     config = config or SolverConfig()
     out = Path(out)
@@ -555,6 +564,8 @@ def solve_to(
     phases: dict = {}
     scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases, loaded=loaded,
                                    workplane=workplane)
+    if luminaires_path is not None:
+        patches.sources = tuple(luminaires.load_schedule(luminaires_path, scene, scale))
     t_load = time.perf_counter() - t0 + (loaded[1] if loaded is not None else 0.0)
 
     t0 = time.perf_counter()

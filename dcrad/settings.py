@@ -102,6 +102,9 @@ def add_scene_flags(parser: argparse.ArgumentParser) -> None:
                         help="every surface receives and reflects light on both sides")
     parser.add_argument("--workplane", type=float, default=0.0,
                         help="height in metres above the floor of a work-plane illuminance grid (default 0: none)")
+    parser.add_argument("--luminaires", default=None, metavar="SCHEDULE.json",
+                        help="luminaires from photometric files (.ies, .ldt) placed by a JSON schedule, in the "
+                             "scene file's coordinates (see docs/guide.md, Luminaires); in this process only")
 
 
 def scene_values(args: argparse.Namespace) -> dict:

@@ -11,13 +11,15 @@
 # versions pin the wheels, so the containers run exactly the numerics the host's tests ran.
 # Only the run-time dependencies of the services go in: no test extras, and not matplotlib,
 # which only `dcrad compare` uses to draw its charts (with its own dependencies it would
-# add about 95 MB to the image; run `dcrad compare` on a host).
+# add about 95 MB to the image; run `dcrad compare` on a host), nor photompy, which imports
+# matplotlib and reads the photometric files of `dcrad solve --luminaires`, which the
+# services do not take.
 #
 # The host's Python must be 3.11 on x86_64 like the image's (Debian bookworm); the
 # manylinux wheels run on bookworm's glibc 2.36.
 #
 # Environment: PYTHON (default .venv/bin/python, else python3); DCRAD_IMAGE_EXCLUDE, the
-# dependencies left out of the image, space-separated (default "matplotlib").
+# dependencies left out of the image, space-separated (default "matplotlib photompy").
 set -euo pipefail
 
 root="$(cd "$(dirname "$0")/.." && pwd)"
@@ -75,7 +77,7 @@ log "built $(cd "$out/project" && ls -- *.whl)"
 
 # -- the dependency wheels ---------------------------------------------------------------
 # The dependencies of the wheel just built (its METADATA), without extras.
-"$PYTHON" - "$out"/project/*.whl "${DCRAD_IMAGE_EXCLUDE-matplotlib}" >"$tmp/requires.txt" <<'EOF'
+"$PYTHON" - "$out"/project/*.whl "${DCRAD_IMAGE_EXCLUDE-matplotlib photompy}" >"$tmp/requires.txt" <<'EOF'
 import re, sys, zipfile
 from email.parser import Parser
 with zipfile.ZipFile(sys.argv[1]) as z:
@@ -90,7 +92,7 @@ for req in msg.get_all("Requires-Dist") or []:
 EOF
 # what was left out, for the Dockerfile's `pip check` (which would miss them)
 # (one name a line and no empty line: an empty pattern would hide every complaint)
-read -r -a excluded <<<"${DCRAD_IMAGE_EXCLUDE-matplotlib}"
+read -r -a excluded <<<"${DCRAD_IMAGE_EXCLUDE-matplotlib photompy}"
 : >"$tmp/excluded.txt"
 for name in ${excluded[@]+"${excluded[@]}"}; do echo "$name" >>"$tmp/excluded.txt"; done
 

@@ -1,0 +1,484 @@
+"""Luminaires from photometric files (luminaires.py), against closed forms and against each other.
+
+The photometric files are written here, by hand as LM-63 and EULUMDAT text (full precision, so the
+table is the distribution the test means) or with photompy's own ``create_ies``.  The truths:
+E = I cos / d^2 under a cosine downlight (CIE 171:2006 case 5.2's layout), every lumen of an
+isotropic source absorbed in a closed black room (case 5.4), the utilisation factor of a cosine
+downlight on a rectangle (the point-to-parallel-rectangle form factor), a symmetric file against
+its full table, a rotated luminaire against its table rotated by hand, a Z-up millimetre file
+against the same room Y-up in metres, an IES file against an EULUMDAT one, and every bad input
+refused in one line naming its file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import dcrad
+from dcrad.cli import main
+from dcrad.errors import ConfigError
+from dcrad.luminaires import Distribution, Luminaire, load_schedule, read_photometric
+from dcrad.photometry import workplane
+from dcrad.rays import Tracer
+from scenes.objwriter import ObjWriter
+
+GAMMA_HALF = np.arange(0.0, 90.5, 1.0)  # 0-90 every degree: cos interpolates to 4e-5
+GAMMA_FULL = np.arange(0.0, 180.1, 5.0)
+C_FULL = np.arange(0.0, 360.1, 15.0)
+
+
+def box(folder, size=(4.0, 3.0, 4.0), rho=0.0, stem="room") -> Path:
+    """A closed box of one reflectance, its faces facing in, each face its own object; Y up."""
+    x, y, z = size
+    w = ObjWriter()
+    w.material("surface", rho)
+    for name, axis, value, facing in [("floor", 1, 0.0, 1), ("ceiling", 1, y, -1), ("wall_x0", 0, 0.0, 1),
+                                      ("wall_x1", 0, x, -1), ("wall_z0", 2, 0.0, 1), ("wall_z1", 2, z, -1)]:
+        w.begin(name, "surface")
+        lo, hi = {0: ((0.0, 0.0), (y, z)), 1: ((0.0, 0.0), (x, z)), 2: ((0.0, 0.0), (x, y))}[axis]
+        w.add_rect(axis, value, lo, hi, facing)
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    return w.write(folder, stem)
+
+
+def _row(values) -> str:
+    return " ".join(repr(float(v)) for v in values)
+
+
+def ies(path: Path, gamma, c, cd, *, version="IESNA:LM-63-2002", lumens=-1.0, lamps=1, multiplier=1.0,
+        ptype=1, units=2, opening=(0.0, 0.0, 0.0), ballast=1.0, future=1.0, watts=0.0, tilt="NONE") -> Path:
+    """An LM-63 file written by hand: candela ``cd`` (len(c), len(gamma))."""
+    cd = np.asarray(cd, np.float64).reshape(len(c), len(gamma))
+    lines = ([version] if version else []) + ["[TEST] dcrad", "[MANUFAC] dcrad tests"]
+    lines += [f"TILT={tilt}"] if isinstance(tilt, str) else ["TILT=INCLUDE", "1", str(len(tilt[0])), _row(tilt[0]),
+                                                            _row(tilt[1])]
+    lines += [f"{lamps} {lumens!r} {multiplier!r} {len(gamma)} {len(c)} {ptype} {units} {_row(opening)}",
+              f"{ballast!r} {future!r} {watts!r}", _row(gamma), _row(c), *(_row(r) for r in cd)]
+    path.write_text("\n".join(lines) + "\n", encoding="latin-1")
+    return path
+
+
+def ldt(path: Path, isym: int, c_all, gamma, cd_stored, *, flux=1000.0, lamps=1, watts=0.0, sets=1,
+        comma=False) -> Path:
+    """A EULUMDAT file written by hand: all C angles listed, the stored planes' candela (cd, turned into
+    cd/klm of ``flux`` here) in ``cd_stored`` (planes, len(gamma))."""
+    f = (lambda v: repr(float(v)).replace(".", ",")) if comma else (lambda v: repr(float(v)))
+    lines = ["dcrad tests", "1", str(isym), str(len(c_all)), f(c_all[1] - c_all[0]) if len(c_all) > 1 else "0",
+             str(len(gamma)), f(gamma[1] - gamma[0]), "report", "luminaire", "L-1", path.name, "2026-01-01"]
+    lines += ["100", "100", "50", "60", "0", "0", "0", "0", "0", "100", "100", "1", "0", str(sets)]
+    for _ in range(sets):
+        lines += [str(lamps), "LED", f(flux), "3000K", "1B", f(watts)]
+    lines += ["0.5"] * 10
+    lines += [f(v) for v in c_all] + [f(v) for v in gamma]
+    lines += [f(v) for v in (np.asarray(cd_stored, np.float64) * 1000.0 / flux).reshape(-1)]
+    path.write_text("\r\n".join(lines) + "\r\n")
+    return path
+
+
+def schedule(path: Path, entries) -> Path:
+    path.write_text(json.dumps(entries))
+    return path
+
+
+def table(fn, c=C_FULL, gamma=GAMMA_FULL) -> np.ndarray:
+    """fn(gamma deg, C deg) on the grid: (len(c), len(gamma))."""
+    cc, gg = np.meshgrid(c, gamma, indexing="ij")
+    return fn(gg, cc)
+
+
+def down(g):
+    """cos(gamma) below the horizontal, 0 above (a downlight's shape over 0-180)."""
+    return np.maximum(np.cos(np.radians(g)), 0.0)
+
+
+def random_dirs(n=4000, seed=7) -> np.ndarray:
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1)[:, None]
+
+
+def cosine_downlight(tmp_path, i0=1000.0) -> Path:
+    return ies(tmp_path / "downlight.ies", GAMMA_HALF, [0.0], [i0 * np.cos(np.radians(GAMMA_HALF))],
+               lumens=1000.0, watts=12.5)
+
+
+def test_a_cosine_downlight_above_a_black_floor_gives_i_cos_over_d2(tmp_path):
+    """I(gamma) = 1000 cos(gamma) cd 3 m above the black floor of a closed room: E = I cos / d^2 =
+    I0 h^2 / d^4 lux at every floor point (one shadow ray a point: exact but for the table's
+    interpolation of cos at 1 degree, 4e-5), and the lumens are its pi I0 (lm)."""
+    path = box(tmp_path, size=(4.0, 3.2, 4.0))
+    lights = schedule(tmp_path / "lights.json", {"file": "downlight.ies", "position": [2.0, 3.0, 2.0]})
+    cosine_downlight(tmp_path)
+    result = dcrad.solve(path, accuracy=0.05, patch_size=0.5, luminaires=lights, seed=1)
+    (lum,) = result.patches.sources
+    assert isinstance(lum, Luminaire) and lum.photometric.lamp_lumens == 1000.0
+    assert lum.lumens == pytest.approx(math.pi * 1000.0, rel=1e-4)
+    wp = workplane(result.patches, 1e-4, spacing=0.37, tracer=Tracer.mesh(result.patches), border=0.0)
+    d = np.array([2.0, 3.0, 2.0]) - wp["points"]
+    r2 = (d * d).sum(axis=1)
+    h = 3.0 - 1e-4
+    expected = 1000.0 * h * h / r2 ** 2
+    assert len(expected) > 80
+    np.testing.assert_allclose(wp["lux"], expected, rtol=1e-4)
+    section = result.report["luminaires"]
+    assert section["count"] == 1 and section["types"][0]["input_watts_each"] == 12.5
+    assert section["lumens"] == pytest.approx(lum.lumens, rel=1e-12)
+    assert not any("no emitters" in w for w in result.report["warnings"])
+
+
+def test_an_isotropic_10000_lm_luminaire_in_a_closed_black_room_puts_every_lumen_on_its_surfaces(tmp_path):
+    """CIE 171:2006 case 5.4 from a file: absolute photometry (-1 lm) of 10,000 / (4 pi) cd every way;
+    the ledger books 10,000 lm / 179 lm/W in each channel, all absorbed, none escaping."""
+    ies(tmp_path / "iso.ies", GAMMA_FULL, [0.0], [np.full(len(GAMMA_FULL), 10_000.0 / (4 * math.pi))])
+    lights = schedule(tmp_path / "lights.json", [{"file": "iso.ies", "position": [2.0, 1.5, 2.0], "name": "bulb"}])
+    result = dcrad.solve(box(tmp_path), accuracy=0.05, patch_size=0.5, luminaires=lights, seed=2)
+    led = result.report["ledger"]
+    assert sum(led["emitted"]) == pytest.approx(3 * 10_000.0 / 179.0, rel=1e-12)
+    assert sum(led["absorbed"]) == pytest.approx(3 * 10_000.0 / 179.0, rel=1e-9)
+    assert sum(led["escaped"]) == 0.0 and led["closure"] < 1e-9
+    t = result.report["luminaires"]["types"][0]
+    assert t["lamp_lumens"] is None and t["lumens_each"] == pytest.approx(10_000.0, rel=1e-12)
+    assert result.patches.sources[0].name == "bulb"
+
+
+def _pair(tmp_path, name, *files_and_entries):
+    """The luminaires of one schedule, in the Y-up 4 x 3 x 4 room."""
+    scene = dcrad.load(box(tmp_path / "room"))
+    return load_schedule(schedule(tmp_path / f"{name}.json", list(files_and_entries)), scene)
+
+
+@pytest.mark.parametrize("kind", ["axial", "half", "quadrant_uneven"])
+def test_a_symmetric_file_gives_the_intensities_of_its_full_table(tmp_path, kind):
+    """One plane, 0-180 and 0-90 (its planes unevenly spaced) against the 0-360 table of the same
+    distribution, its mirrored planes where the symmetry puts them: the same candela every way,
+    the same lumens."""
+    if kind == "axial":
+        fn, stored = (lambda g, c: 1000 * np.cos(np.radians(g)) ** 2 + 50 + 0 * c), np.array([0.0])
+        full_c = C_FULL
+    elif kind == "half":
+        fn, stored = (lambda g, c: 1000 * down(g) * (1 + 0.5 * np.cos(np.radians(c))) + 20), \
+            np.arange(0.0, 180.1, 15.0)
+        full_c = C_FULL
+    else:
+        fn = lambda g, c: 1000 * down(g) * (1 + 0.5 * np.cos(np.radians(2 * c))) + 20
+        stored = np.array([0.0, 10.0, 30.0, 60.0, 90.0])
+        full_c = np.unique(np.concatenate([stored, 180 - stored, 180 + stored, 360 - stored]))
+    ies(tmp_path / "sym.ies", GAMMA_FULL, stored, table(fn, stored))
+    ies(tmp_path / "full.ies", GAMMA_FULL, full_c, table(fn, full_c))
+    sym, full = _pair(tmp_path, "both", {"file": "sym.ies", "position": [1, 1, 1], "aim": [0.2, -1, 0.4]},
+                      {"file": "full.ies", "position": [1, 1, 1], "aim": [0.2, -1, 0.4]})
+    dirs = random_dirs()
+    np.testing.assert_allclose(sym.candela(dirs), full.candela(dirs), rtol=1e-12, atol=1e-9)
+    assert sym.lumens == pytest.approx(full.lumens, rel=1e-12)
+    # and at the table's own knots the candela are the file's, mirrored where the symmetry says
+    gg, cc = np.meshgrid(GAMMA_FULL, full_c)
+    np.testing.assert_allclose(sym.photometric.distribution.at(gg, cc), table(fn, full_c), rtol=1e-12)
+
+
+def test_a_symmetric_and_a_full_file_light_a_room_alike(tmp_path):
+    """The same solve with the one-plane and the 0-360 file: the same lumens booked, the same lux on
+    the work plane (black room: the exact direct light)."""
+    fn = lambda g, c: 1000 * np.cos(np.radians(g)) ** 3 + 0 * c
+    ies(tmp_path / "one.ies", GAMMA_HALF, [0.0], table(fn, [0.0], GAMMA_HALF))
+    ies(tmp_path / "all.ies", GAMMA_HALF, C_FULL, table(fn, C_FULL, GAMMA_HALF))
+    runs = []
+    for f in ("one.ies", "all.ies"):
+        lights = schedule(tmp_path / f"{f}.json", {"file": f, "position": [1.5, 2.9, 2.5]})
+        r = dcrad.solve(box(tmp_path / "room"), tmp_path / f"out_{f}", accuracy=0.05, patch_size=0.5,
+                        luminaires=lights, workplane=0.8, seed=3, width=32, height=24)
+        runs.append((r, np.load(tmp_path / f"out_{f}" / "radiosity.npz")["workplane_lux"]))
+    (a, lux_a), (b, lux_b) = runs
+    assert a.report["ledger"]["emitted"] == pytest.approx(b.report["ledger"]["emitted"], rel=1e-12)
+    np.testing.assert_allclose(lux_a, lux_b, rtol=1e-9)
+    assert lux_a.max() > 10
+
+
+def test_a_luminaire_rotated_about_its_aim_is_its_table_rotated_by_hand(tmp_path):
+    """An asymmetric table (brighter towards C0) turned 90 degrees about its aim equals the file whose
+    table is shifted by hand, B(C) = A(C - 90), unturned; and the frame is the documented one: C0
+    along the file's +X, C90 = C0 x aim (-Z under a downlight in a Y-up room)."""
+    fn = lambda g, c: 1000 * down(g) * (1 + 0.8 * np.cos(np.radians(c))) + 10
+    ies(tmp_path / "a.ies", GAMMA_FULL, C_FULL, table(fn, C_FULL))
+    ies(tmp_path / "b.ies", GAMMA_FULL, C_FULL, table(lambda g, c: fn(g, c - 90.0), C_FULL))
+    turned, by_hand, plain = _pair(tmp_path, "turn", {"file": "a.ies", "position": [2, 2, 2], "rotation": 90},
+                                   {"file": "b.ies", "position": [2, 2, 2]},
+                                   {"file": "a.ies", "position": [2, 2, 2]})
+    dirs = random_dirs()
+    np.testing.assert_allclose(turned.candela(dirs), by_hand.candela(dirs), rtol=1e-12, atol=1e-9)
+    s = math.sqrt(0.5)
+    towards = np.array([[s, -s, 0], [-s, -s, 0], [0, -s, -s], [0, -s, s]])  # 45 degrees below +X, -X, -Z, +Z
+    expected = fn(45.0, np.array([0.0, 180.0, 90.0, 270.0]))
+    np.testing.assert_allclose(plain.candela(towards), expected, rtol=1e-12)
+    np.testing.assert_allclose(turned.candela(towards), fn(45.0, np.array([-90.0, 90.0, 0.0, 180.0])), rtol=1e-12)
+
+
+def test_a_luminaire_aimed_sideways_lights_a_wall_not_the_floor(tmp_path):
+    """A 25-degree beam aimed along +X from the room's middle: wall x = 4 is lit (straight ahead, 2 m
+    away: I / d^2 = 250 lux), the floor, ceiling and other walls get nothing."""
+    g = np.arange(0.0, 90.5, 5.0)
+    ies(tmp_path / "spot.ies", g, [0.0], [np.where(g <= 25, 1000.0, np.where(g <= 30, 1000.0 * (30 - g) / 5, 0.0))])
+    lights = schedule(tmp_path / "lights.json", {"file": "spot.ies", "position": [2, 1.5, 2], "aim": [1, 0, 0]})
+    result = dcrad.solve(box(tmp_path), tmp_path / "out", accuracy=0.05, patch_size=0.25, luminaires=lights,
+                         seed=4, width=32, height=24)
+    surfaces = {s["name"]: s for s in result.report["photometry"]["surfaces"]}
+    assert surfaces["wall_x1"]["E_max_lux"] > 100
+    for other in ("floor", "ceiling", "wall_x0", "wall_z0", "wall_z1"):
+        assert surfaces[other]["E_max_lux"] == 0.0, other
+    (lum,) = result.patches.sources
+    tracer = Tracer.mesh(result.patches)
+    h = lum.irradiance(np.array([[4.0 - 1e-9, 1.5, 2.0]]), np.array([[-1.0, 0, 0]]), tracer, 1e-6)
+    assert 179.0 * h[0, 0] == pytest.approx(250.0, rel=1e-9)
+
+
+def test_a_z_up_millimetre_schedule_lands_where_the_y_up_metre_one_does(tmp_path):
+    """The same room and light written Z-up in millimetres (positions and aims in the file's own
+    coordinates, scale 0.001, the up axis detected from a scene without emitters) and Y-up in
+    metres: the same luminaire in the solver's frame, the same lux on the work plane."""
+    yup = box(tmp_path / "yup")
+    text = yup.read_text().splitlines()
+    zup_dir = tmp_path / "zup"
+    zup_dir.mkdir()
+    out_lines = []
+    for line in text:  # (x, y, z) metres Y-up -> (x, -z, y) millimetres Z-up: a rotation, winding kept
+        if line.startswith("v "):
+            x, y, z = map(float, line.split()[1:])
+            line = f"v {1000 * x!r} {-1000 * z!r} {1000 * y!r}"
+        out_lines.append(line)
+    (zup_dir / "room.obj").write_text("\n".join(out_lines) + "\n")
+    (zup_dir / "room.mtl").write_text((tmp_path / "yup" / "room.mtl").read_text())
+    fn = lambda g, c: 800 * np.cos(np.radians(g)) * (1 + 0.6 * np.sin(np.radians(c))) + 5
+    for folder in (tmp_path / "yup", zup_dir):
+        ies(folder / "asym.ies", GAMMA_HALF, C_FULL, table(fn, C_FULL, GAMMA_HALF))
+    schedule(tmp_path / "yup" / "lights.json",
+             {"file": "asym.ies", "position": [1.5, 2.5, 1.0], "aim": [0.3, -1, 0.2], "rotation": 30})
+    schedule(zup_dir / "lights.json",
+             {"file": "asym.ies", "position": [1500, -1000, 2500], "aim": [0.3, -0.2, -1], "rotation": 30})
+    a = dcrad.solve(yup, tmp_path / "out_y", accuracy=0.05, patch_size=0.5, luminaires=tmp_path / "yup" / "lights.json",
+                    workplane=0.8, seed=5, width=32, height=24)
+    b = dcrad.solve(zup_dir / "room.obj", tmp_path / "out_z", accuracy=0.05, patch_size=0.5, scale=0.001,
+                    luminaires=zup_dir / "lights.json", workplane=0.8, seed=5, width=32, height=24)
+    assert b.scene.up == "z" and b.scene.up_source.startswith("detected")
+    la, lb = a.patches.sources[0], b.patches.sources[0]
+    for attr in ("position", "aim", "c0", "c90"):
+        np.testing.assert_allclose(getattr(lb, attr), getattr(la, attr), atol=1e-12)
+    dirs = random_dirs()
+    np.testing.assert_allclose(lb.candela(dirs), la.candela(dirs), rtol=1e-12, atol=1e-9)
+    lux_a = np.load(tmp_path / "out_y" / "radiosity.npz")["workplane_lux"]
+    lux_b = np.load(tmp_path / "out_z" / "radiosity.npz")["workplane_lux"]
+    np.testing.assert_allclose(lux_b, lux_a, rtol=1e-9)
+
+
+def test_an_ies_and_an_ldt_file_of_one_distribution_are_one_luminaire(tmp_path):
+    """EULUMDAT's symmetries read as the standard lays them out (all Mc C angles listed, then only the
+    stored planes: Isym 1 one, 2 and 3 Mc/2 + 1 from C0 or C90, 4 Mc/4 + 1) against the IES file of
+    the whole table; a decimal-comma file too; and one solve with each gives the same lux."""
+    cases = {  # Isym: (distribution, stored planes)
+        1: (lambda g, c: 900 * np.cos(np.radians(g)) ** 2 + 30 + 0 * c, np.array([0.0])),
+        2: (lambda g, c: 900 * down(g) * (1 + 0.5 * np.cos(np.radians(c))) + 30,
+            np.arange(0.0, 180.1, 15.0)),
+        3: (lambda g, c: 900 * down(g) * (1 + 0.5 * np.sin(np.radians(c))) + 30,
+            np.arange(90.0, 270.1, 15.0)),
+        4: (lambda g, c: 900 * down(g) * (1 + 0.5 * np.cos(np.radians(2 * c))) + 30,
+            np.arange(0.0, 90.1, 15.0)),
+        0: (lambda g, c: 900 * down(g) * (1 + 0.7 * np.cos(np.radians(c - 40))) + 30,
+            np.arange(0.0, 359.0, 15.0)),
+    }
+    dirs = random_dirs()
+    for isym, (fn, stored) in cases.items():
+        ies(tmp_path / f"s{isym}.ies", GAMMA_FULL, C_FULL, table(fn, C_FULL), lumens=2000.0, watts=20.0)
+        ldt(tmp_path / f"s{isym}.ldt", isym, np.arange(0.0, 359.0, 15.0), GAMMA_FULL, table(fn, stored),
+            flux=2000.0, watts=20.0, comma=isym == 2)
+        a, b = _pair(tmp_path, f"s{isym}", {"file": f"s{isym}.ies", "position": [2, 2.5, 2], "rotation": 20},
+                     {"file": f"s{isym}.ldt", "position": [2, 2.5, 2], "rotation": 20})
+        np.testing.assert_allclose(b.candela(dirs), a.candela(dirs), rtol=1e-9, atol=1e-9, err_msg=f"Isym {isym}")
+        assert b.lumens == pytest.approx(a.lumens, rel=1e-9)
+        assert (b.photometric.lamp_lumens, b.photometric.input_watts) == (2000.0, 20.0)
+        assert (a.photometric.lamp_lumens, a.photometric.input_watts) == (2000.0, 20.0)
+    ldt_lux = []
+    for f in ("s3.ies", "s3.ldt"):
+        lights = schedule(tmp_path / f"run_{f}.json", {"file": f, "position": [1.5, 2.9, 2.5], "rotation": 20})
+        dcrad.solve(box(tmp_path / "room"), tmp_path / f"o_{f}", accuracy=0.05, patch_size=0.5, luminaires=lights,
+                    workplane=0.8, seed=6, width=32, height=24)
+        ldt_lux.append(np.load(tmp_path / f"o_{f}" / "radiosity.npz")["workplane_lux"])
+    np.testing.assert_allclose(ldt_lux[1], ldt_lux[0], rtol=1e-9)
+
+
+def test_photompy_written_files_and_the_file_s_own_factors(tmp_path):
+    """A file from photompy's ``create_ies``; the candela multiplier and ballast factor (and 1995's
+    ballast-lamp factor, not 2019's file-generation type) scale the table; LM-63-1991 and 1986 files
+    read; TILT=INCLUDE scales a luminaire by its factor at the luminaire's tilt from straight down;
+    the schedule's multiplier scales the lumens."""
+    import photompy
+
+    g = np.arange(0.0, 180.1, 10.0)
+    photompy.create_ies(g, np.array([0.0]), np.full((1, len(g)), 100.0), manufacturer="m", lumcat="l", test="t",
+                        testlab="x", issuedate="2026-01-01", input_watts=7).write(tmp_path / "made.ies")
+    made = read_photometric(tmp_path / "made.ies")
+    assert made.lumens == pytest.approx(400 * math.pi, rel=1e-12) and made.input_watts == 7.0
+    const = [np.full(len(g), 100.0)]
+    lm = 400 * math.pi
+    for name, kw, factor in [("mult", {"multiplier": 2.0, "ballast": 0.9}, 1.8),
+                             ("v1995", {"version": "IESNA:LM-63-1995", "ballast": 0.9, "future": 0.8}, 0.72),
+                             ("v2019", {"version": "IES:LM-63-2019", "future": 1.10000}, 1.0),
+                             ("v1991", {"version": "IESNA91"}, 1.0), ("v1986", {"version": ""}, 1.0)]:
+        p = read_photometric(ies(tmp_path / f"{name}.ies", g, [0.0], const, **kw))
+        assert p.lumens == pytest.approx(lm * factor, rel=1e-12), name
+    assert "LM-63-1986" in read_photometric(tmp_path / "v1986.ies").label
+    ies(tmp_path / "tilt.ies", g, [0.0], const, tilt=([0.0, 90.0], [1.0, 0.5]))
+    down, tilted = _pair(tmp_path, "tilt", {"file": "tilt.ies", "position": [2, 2, 2], "multiplier": 0.5},
+                         {"file": "tilt.ies", "position": [2, 2, 2], "aim": [math.sqrt(3), -1, 0]})
+    assert down.lumens == pytest.approx(0.5 * lm, rel=1e-12)
+    assert tilted.lumens == pytest.approx((1 - 0.5 * 60 / 90) * lm, rel=1e-12)
+    assert tilted.power() == pytest.approx(np.full(3, tilted.lumens / 179.0), rel=1e-15)
+
+
+def test_rays_carry_the_distribution_and_exactly_its_power():
+    """Each half of a batch carries exactly half the power; the rays' power by direction is the
+    distribution's (the share above 60 degrees from nadir against its closed form)."""
+    g = np.arange(0.0, 180.1, 2.0)
+    dist = Distribution.expand([0.0], g, [np.cos(np.radians(g)) ** 2], "axial")  # I = cos^2, up and down
+    from dcrad.luminaires import Photometric
+
+    ph = Photometric("x.ies", "test", dist, None, None, (0, 0, 0), "point")
+    lum = Luminaire(np.zeros(3), photometric=ph, aim=np.array([0.0, -1, 0]), c0=np.array([1.0, 0, 0]))
+    batch = lum.rays(200_001, np.random.default_rng(3))
+    p = lum.power()
+    assert batch.power[batch.half].sum(axis=0) == pytest.approx(p / 2, rel=1e-12)
+    assert batch.power[~batch.half].sum(axis=0) == pytest.approx(p / 2, rel=1e-12)
+    # the rays' share between 60 and 120 degrees from nadir is the table's (its cells' exact flux),
+    # and the table's is I = cos^2's, 1/8, to its interpolation at 2 degrees
+    share = batch.power[np.abs(batch.dirs[:, 1]) < 0.5, 0].sum() / p[0]
+    flux = dist.cells()[0]
+    band = flux[:, (g[:-1] >= 60) & (g[1:] <= 120)].sum() / flux.sum()
+    assert share == pytest.approx(band, rel=5e-4)  # its noise at 200k rays: 1e-4
+    assert band == pytest.approx(1 / 8, rel=3e-3)
+    assert lum.lumens == pytest.approx(4 * math.pi / 3, rel=1e-3)  # chords of cos^2 at 2 degrees: 2e-4 high
+    # a batch of one ray (a solver's last batch can be) carries all the power, whichever half it joins
+    from dcrad.emitters import PointSource
+
+    point = PointSource(np.zeros(3), np.ones(3))
+    for seed in range(8):
+        for source in (lum, point):
+            one = source.rays(1, np.random.default_rng(seed))
+            assert one.half is None and one.power.sum(axis=0) == pytest.approx(source.power(), rel=1e-12)
+
+
+def test_the_command_reports_the_utilisation_factor_against_the_form_factor(tmp_path):
+    """`dcrad solve --luminaires` end to end in a black room: the cosine downlight's utilisation
+    factor on the work-plane grid is the form factor from a point facing the grid's rectangle (the
+    direct light is all there is), and the command prints the table."""
+    path = box(tmp_path)
+    cosine_downlight(tmp_path)
+    schedule(tmp_path / "lights.json", [{"file": "downlight.ies", "position": [2.0, 3.0, 2.0]}])
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "dcrad.cli", "solve", str(path), "--luminaires",
+                           str(tmp_path / "lights.json"), "--workplane", "0.8", "--accuracy", "0.05",
+                           "--patch-size", "0.5", "--out", str(out), "--width", "32", "--height", "24"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "1 luminaire(s)" in proc.stdout and "downlight.ies" in proc.stdout
+    report = json.loads((out / "report.json").read_text())
+    assert any(c["code"] == "workers" and "luminaires" in c["text"] for c in report["choices"])
+    pts = np.load(out / "radiosity.npz")["workplane_points"]
+    s = report["photometry"]["workplane"]["spacing_m"]
+    lo, hi = pts[:, [0, 2]].min(axis=0) - s / 2 - 2.0, pts[:, [0, 2]].max(axis=0) + s / 2 - 2.0
+    h = 3.0 - 0.8
+
+    def corner(a, b):  # the form factor times pi of a rectangle a x b from above its corner, times 2 / pi
+        A, B = abs(a) / h, abs(b) / h
+        return (A / math.hypot(1, A) * math.atan(B / math.hypot(1, A)) + B / math.hypot(1, B)
+                * math.atan(A / math.hypot(1, B))) / (2 * math.pi)
+
+    form_factor = sum(corner(a, b) for a in (lo[0], hi[0]) for b in (lo[1], hi[1]))
+    lum = report["luminaires"]
+    assert len(pts) == report["photometry"]["workplane"]["n_points"] and lum["workplane_area_m2"] == pytest.approx(
+        (hi - lo).prod(), rel=1e-9)
+    assert lum["utilisation_factor"] == pytest.approx(form_factor, rel=2e-3)
+    assert lum["types"][0]["workplane_direct_share"] == pytest.approx(lum["utilisation_factor"], rel=1e-9)
+
+
+def _bad_cases(tmp_path):
+    g = np.arange(0.0, 90.1, 10.0)
+    good = [np.cos(np.radians(g)) * 100]
+    ies(tmp_path / "good.ies", g, [0.0], good)
+    ies(tmp_path / "neg.ies", g, [0.0], [good[0] - 50])
+    ies(tmp_path / "typeb.ies", g, [0.0], good, ptype=2)
+    ies(tmp_path / "tiltfile.ies", g, [0.0], good, tilt="lamp.tlt")
+    text = ies(tmp_path / "nan.ies", g, [0.0], good).read_text().replace(repr(float(good[0][3])), "nan")
+    (tmp_path / "nan.ies").write_text(text)
+    (tmp_path / "trunc.ies").write_text((tmp_path / "good.ies").read_text()[:-40])
+    (tmp_path / "junk.ies").write_text("hello\nworld\n")
+    (tmp_path / "lamp.txt").write_text("x")
+    full = ldt(tmp_path / "ok.ldt", 1, np.arange(0.0, 359.0, 30.0), g, good).read_text()
+    (tmp_path / "trunc.ldt").write_text(full[: len(full) - 30])
+    ldt(tmp_path / "sets.ldt", 1, np.arange(0.0, 359.0, 30.0), g, good, sets=2)
+    inside = [2, 2, 2]
+    return [  # (schedule text or entries, what the message says)
+        ({"file": "nope.ies", "position": inside}, r"nope\.ies: no such photometric file"),
+        ({"file": "junk.ies", "position": inside}, r"junk\.ies: not an IES LM-63 file"),
+        ({"file": "trunc.ies", "position": inside}, r"trunc\.ies: malformed or truncated"),
+        ({"file": "neg.ies", "position": inside}, r"neg\.ies: negative candela"),
+        ({"file": "nan.ies", "position": inside}, r"nan\.ies: non-finite candela"),
+        ({"file": "typeb.ies", "position": inside}, r"typeb\.ies: type B photometry is not supported"),
+        ({"file": "tiltfile.ies", "position": inside}, r"tiltfile\.ies: TILT=lamp\.tlt .*not supported"),
+        ({"file": "trunc.ldt", "position": inside}, r"trunc\.ldt: .*truncated"),
+        ({"file": "sets.ldt", "position": inside}, r"sets\.ldt: 2 lamp sets"),
+        ({"file": "lamp.txt", "position": inside}, r"lamp\.txt: not a photometric file"),
+        ({"file": "good.ies", "position": inside, "colour": "red"}, r"unknown key\(s\) 'colour'"),
+        ({"position": inside}, r"needs \"file\""),
+        ({"file": "good.ies"}, r"needs \"position\""),
+        ({"file": "good.ies", "position": [1, 2]}, r"position must be \[x, y, z\]"),
+        ({"file": "good.ies", "position": ["a", 1, 2]}, r"position must be \[x, y, z\]"),
+        ({"file": "good.ies", "position": inside, "aim": [0, 0, 0]}, r"aim \[0, 0, 0\] has no direction"),
+        ({"file": "good.ies", "position": inside, "multiplier": 0}, r"multiplier 0 must be > 0"),
+        ({"file": "good.ies", "position": inside, "multiplier": -2}, r"multiplier -2 must be > 0"),
+        ({"file": "good.ies", "position": inside, "rotation": "x"}, r"rotation must be a finite number"),
+        ({"file": "good.ies", "position": [50, 1, 1], "name": "far"}, r"luminaire 1 \(far\): position .* outside"),
+        ([], r"holds no luminaires"),
+        ("{not json", r"not valid JSON"),
+        ([1, 2], r"a JSON object or a list of objects"),
+    ]
+
+
+def test_bad_input_is_one_line_naming_the_file_and_the_problem(tmp_path):
+    scene = dcrad.load(box(tmp_path / "room"))
+    for i, (entries, pattern) in enumerate(_bad_cases(tmp_path)):
+        path = tmp_path / f"bad{i}.json"
+        path.write_text(entries if isinstance(entries, str) else json.dumps(entries))
+        with pytest.raises(ConfigError, match=pattern) as info:
+            load_schedule(path, scene)
+        message = str(info.value)
+        assert "\n" not in message and f"bad{i}.json" in message, message
+    with pytest.raises(ConfigError, match=r"missing\.json: no such luminaire schedule"):
+        load_schedule(tmp_path / "missing.json", scene)
+
+
+def test_the_command_refuses_bad_luminaires_in_one_line_and_exit_2(tmp_path, capsys):
+    """A bad schedule, and luminaires asked of runs that cannot carry them (workers, subscenes, the
+    service): exit 2 and one line, before any work."""
+    path = box(tmp_path / "room")
+    g = np.arange(0.0, 90.1, 10.0)
+    ies(tmp_path / "neg.ies", g, [0.0], [np.cos(np.radians(g)) * 100 - 50])
+    ies(tmp_path / "ok.ies", g, [0.0], [np.cos(np.radians(g)) * 100])
+    bad = schedule(tmp_path / "bad.json", {"file": "neg.ies", "position": [2, 2, 2]})
+    good = schedule(tmp_path / "good.json", {"file": "ok.ies", "position": [2, 2, 2]})
+    proc = subprocess.run([sys.executable, "-m", "dcrad.cli", "solve", str(path), "--luminaires", str(bad),
+                           "--workers", "0", "--out", str(tmp_path / "o1")], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "bad.json: luminaire 1: " in proc.stderr and "neg.ies: negative candela" in proc.stderr
+    for flags, says in [(["--workers", "2"], "--workers 2"), (["--workers", "0", "--subscenes", "2"], "--subscenes 2"),
+                        (["--planes", "x=2"], "--planes")]:
+        code = main(["solve", str(path), "--luminaires", str(good), "--out", str(tmp_path / "o2"), *flags])
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1 and says in err and "this process" in err, err
+    code = main(["submit", str(path), "--luminaires", str(good), "--coordinator", "127.0.0.1:1"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "does not take luminaire schedules" in err, err
+    assert not (tmp_path / "o2").exists()
