@@ -159,10 +159,12 @@ def noise_floor(estimate, accuracy: float) -> bool:
     return estimate.bias_refl <= BIAS_SHARE * accuracy and estimate.noise_refl > accuracy
 
 
-def pass_target(so_far: float, accuracy: float) -> float:
-    """The error a new independent pass must reach for the blend with passes of error
-    ``so_far`` (relative) to come to MARGIN * accuracy: 1/t^2 = 1/(m a)^2 - 1/so_far^2."""
-    goal = MARGIN * accuracy
+def pass_target(so_far: float, accuracy: float, bias: float = 0.0) -> float:
+    """The noise a new independent pass must reach for the blend with passes of noise ``so_far``
+    (relative) to come to MARGIN * accuracy with ``bias`` beside it: 1/t^2 = 1/n^2 - 1/so_far^2,
+    n^2 = (m a)^2 - bias^2 (the passes' noise averages down in the blend, their bias does not; n at
+    least half of m a: a bias near the target would otherwise ask for any density at all)."""
+    goal = max(math.sqrt(max((MARGIN * accuracy) ** 2 - bias ** 2, 0.0)), 0.5 * MARGIN * accuracy)
     room = 1.0 / goal ** 2 - 1.0 / max(so_far, goal * 1.0001) ** 2
     return 1.0 / np.sqrt(room)
 

@@ -78,7 +78,8 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
                           for c in solver.choices.of("direct", "pass", "density"))
         # a pass that ended just above the target needs little from the next: its own target can come
         # out above 1 (a closed cube: 1.27), which is no accuracy at all; half the light is plenty
-        target = min(pass_target(est.rms_refl, goal), 0.5)
+        # (the bias the blend will carry: at least what a later pass leaves, its cap below)
+        target = min(pass_target(est.noise_refl, goal, max(est.bias_refl, BIAS_SHARE * goal)), 0.5)
         # never sparser than the pass before: at low densities the 32-ray floors and the gather's
         # tails make a pass's noise hard to predict
         # and never more than PASS_GROWTH times denser: a pass's own noise can be far above what its
@@ -92,7 +93,9 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         calibrated = passes == 1 and bool(solver.choices.of("density"))
         density = solver.density() if calibrated else cfg.rays_per_power
         growth = PASS_GROWTH / solver.calibration if calibrated else PASS_GROWTH
-        want = max((est.noise_refl / target) ** 2 * 1.1, SPARSER if calibrated else 1.0)
+        # (10% more than the noise asks, but after a calibrated pass, whose noise was measured at a
+        # density like the next one's: MARGIN is margin enough)
+        want = max((est.noise_refl / target) ** 2 * (1.0 if calibrated else 1.1), SPARSER if calibrated else 1.0)
         rpp = density * min(want, growth)
         shot = solver.gathered and solver.direct_light is None and not solver.final_rays
         if want > growth:
@@ -108,6 +111,7 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         # pilot): the decision stands, and its shadow rays are not paid twice
         solver.gathered = shot
         solver.bias_cap = BIAS_SHARE * goal
+        solver._settled = True  # the clusters settle on the blend, whose noise is lower (below)
         solver.stats.rays, solver.stats.shots, solver.stats.batches = done.rays, done.shots, done.batches
         solver.stats.wall_seconds, solver.stats.trace_seconds = done.wall_seconds, done.trace_seconds
         solver.run(on_progress=on_progress, should_stop=should_stop)
@@ -122,8 +126,11 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
             f"reflected light at {density:.3g} rays per emitted power); an independent pass at "
             f"{rpp:.3g} reached {now.rms_refl:.4f} and the two were blended by inverse variance")
         reason = solver.stats.stopped_by
-        solver.settled_target_error()  # the clusters settle before the blend is judged (the report's estimate)
-        solver.noise.repool(patches)  # ... and their spread is the blend's, not the last pass's alone
+        # the clusters settle on the blend before it is judged (the report's estimate): on either pass
+        # alone their noise hides the spread of clusters whose light varies (the ice-cream store's
+        # second pass undid 21 of 6,162)
+        solver._settled = False
+        solver.settled_target_error()
         blended = solver.estimate()
         if reason in ("accuracy", "noise_floor", "tolerance"):
             solver.stats.stopped_by = "accuracy" if blended.rms_refl <= goal else "noise_floor"
