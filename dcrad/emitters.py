@@ -7,16 +7,18 @@ Everything else (a luminaire of a photometric file, a point or spot light, later
 sun) is an ``Emitter``: an object that says how much it emits, sends its light as rays, and gives
 the exact direct irradiance it puts on any point.  What asks them:
 
-* ``Solver`` books their power as emitted and shoots it once, at the start of a run, before the
-  patches shoot (``Solver.shoot_sources``): its rays land, reflect and are shot on like any
-  other light, so the ledger closes with them in it;
+* ``Solver`` books their power as emitted and spends it once, at the start of a run, before the
+  patches shoot (``Solver.shoot_sources``): with the direct gather on (the default) each patch
+  receives the mean of the exact direct irradiance over it (``patch_irradiance``: three points, a
+  shadow ray each; a point source has no area, so this has no sampling noise), scaled to the power
+  a batch of the source's own rays lands (the books: escaped, back faces), and reflects it like
+  any light; with ``--no-direct`` the source is shot with rays;
 * ``photometry.direct_irradiance`` adds their exact direct light to the lux of black surfaces
   and of the work plane (a point source: one shadow ray a point is exact).
 
 A new kind of emitter implements the three methods below and touches nothing else.  What they
-are not yet: gathered by the solver's exact direct gather (their direct light on reflecting
-patches is shot, so it carries Monte Carlo noise like the shooting's), or run divided or shared
-(``check_single``).
+are not yet: run divided or shared (``check_single``), or gathered again by a final gather (a run
+with sources follows no final plan).
 """
 
 from __future__ import annotations
@@ -29,10 +31,10 @@ import numpy as np
 
 from .errors import ConfigError
 from .noise import half_mask
-from .sampling import lattice
+from .sampling import DEGREE2_RULE, lattice
 from .shoot import RayBatch
 
-__all__ = ["Emitter", "PointSource", "sources_power", "check_single", "sphere_directions"]
+__all__ = ["Emitter", "PointSource", "sources_power", "check_single", "sphere_directions", "patch_irradiance"]
 
 
 @runtime_checkable
@@ -117,14 +119,23 @@ class PointSource:
 
     def rays(self, n: int, rng: np.random.Generator) -> RayBatch:
         """Uniform stratified directions, each ray carrying 4 pi I(dir) / n_half / 2 of its half's
-        power: each half is an unbiased estimate of the whole emission, so their mean is too
-        (for an isotropic source every ray carries exactly P / n)."""
+        power (for an isotropic source exactly P / n); a distribution's halves are scaled to carry
+        exactly half of ``power()`` each, so the ledger closes with it."""
         dirs, half = sphere_directions(n, rng)
         n_a = int(half.sum())
         n_b = n - n_a
         split = n_a > 0 and n_b > 0  # one ray (either half, noise.half_mask) carries it all
         per = np.where(half, 0.5 / max(n_a, 1), 0.5 / max(n_b, 1)) if split else np.full(n, 1.0 / n)
         power = 4.0 * math.pi * self.intensity_at(dirs) * per[:, None]
+        if callable(self.intensity):
+            # each half carries exactly its half of ``power()`` (the integral the ledger books as
+            # emitted): the directions' own sum differs from it by their sampling noise, which left
+            # a downlight's books open by 2.5e-5 of its power
+            parts = (half, ~half) if split else (np.ones(n, bool),)
+            for rows in parts:
+                got = power[rows].sum(axis=0)
+                want = self.power() / len(parts)
+                power[rows] *= np.where(got > 0, want / np.where(got > 0, got, 1.0), 0.0)
         origins = np.broadcast_to(self.position, (n, 3)).copy()
         return RayBatch(origins=origins, dirs=dirs, power=power, shooter=np.zeros(n, np.int64),
                         half=half if split else None)
@@ -145,6 +156,24 @@ class PointSource:
         lit = lit[seen]
         out[lit] = self.intensity_at(-toward[lit]) * (cos[lit] / r[lit] ** 2)[:, None]
         return out
+
+
+#: patches whose irradiance ``patch_irradiance`` evaluates at once (three points and a shadow ray each)
+PATCH_CHUNK = 1 << 16
+
+
+def patch_irradiance(source: Emitter, corners: np.ndarray, normals: np.ndarray, tracer, offset: float) -> np.ndarray:
+    """(k,3) W/m^2: the mean of ``source``'s direct irradiance over each triangle ``corners`` (k,3,3)
+    facing ``normals`` (k,3), by the degree-2 rule (three points, a shadow ray each), in chunks of
+    PATCH_CHUNK triangles."""
+    out = np.zeros((len(corners), 3))
+    r = len(DEGREE2_RULE)
+    for lo in range(0, len(corners), PATCH_CHUNK):
+        c = np.asarray(corners[lo:lo + PATCH_CHUNK], np.float64)
+        points = np.einsum("rc,kcx->krx", DEGREE2_RULE, c).reshape(-1, 3)
+        h = source.irradiance(points, np.repeat(normals[lo:lo + PATCH_CHUNK], r, axis=0), tracer, offset)
+        out[lo:lo + len(c)] = h.reshape(len(c), r, 3).mean(axis=1)
+    return out
 
 
 def sources_power(sources) -> np.ndarray:

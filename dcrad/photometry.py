@@ -74,7 +74,7 @@ from .errors import ConfigError
 from .lights import Lights, form_factors, light_polygons, triangle_lights
 from .rays import MISS, Tracer
 from .render import tonemap
-from .sampling import cosine_hemisphere, lattice, onb, triangle_points
+from .sampling import DEGREE2_RULE, cosine_hemisphere, lattice, onb, triangle_points
 
 __all__ = [
     "EFFICACY", "Y_WEIGHTS", "RHO_GATHER", "GATHER_RAYS", "RAYS_PER_POINT", "SHADOW_RAYS", "PENUMBRA_RAYS",
@@ -115,8 +115,8 @@ _BLOCK = 1 << 20  # about 10 arrays of this many float64 at the peak: 80 MB
 _FF_BLOCK = 1 << 19
 _PAIR_BLOCK = 1 << 18
 _RAY_BATCH = 1 << 18
-#: the degree-2 rule of a triangle: barycentric coordinates of three points of weight 1/3
-_TRI_RULE = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+#: the degree-2 rule of a triangle (sampling.DEGREE2_RULE)
+_TRI_RULE = DEGREE2_RULE
 _POINT_RULE = np.array([[1.0, 0.0, 0.0]])
 
 

@@ -214,3 +214,8 @@ def onb(n: np.ndarray):
     t = np.column_stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]])
     bt = np.column_stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]])
     return t, bt
+
+
+#: the degree-2 rule of a triangle: barycentric coordinates of three points of weight 1/3 (exact
+#: for quadratics: the mean of a smooth field over a triangle from three evaluations)
+DEGREE2_RULE = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])

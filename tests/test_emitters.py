@@ -77,11 +77,43 @@ def test_a_point_above_a_black_floor_lights_it_by_the_inverse_square_law(tmp_pat
     np.testing.assert_allclose(wp["lux"], expected, rtol=1e-9)
 
 
+def test_a_point_source_s_direct_light_on_reflecting_patches_is_gathered_exactly(tmp_path):
+    """A downlight I0 cos(theta) 3 m above a grey floor plate (nothing else: no light comes back): each
+    floor patch's reflected light B - E is rho times the mean of I cos / d^2 over it (the degree-2
+    rule, computed here from the geometry alone) times one factor common to all patches, the share
+    of the power its rays landed over the gathered total (within their noise of 1).  Shot instead
+    (--no-direct), every patch carries its own noise."""
+    from dcrad.sampling import DEGREE2_RULE
+
+    i0, rho = 1000.0 / 179.0, 0.5
+
+    def downlight(dirs):
+        return np.repeat(np.maximum(-dirs[:, 1:2], 0.0) * i0, 3, axis=1)
+
+    pos = np.array([2.0, HEIGHT, 2.0])
+    path = box(tmp_path, rho, floor_only=True)
+    ratios = {}
+    for direct in (True, False):
+        result = dcrad.solve(path, accuracy=0.05, patch_size=0.25, sources=[PointSource(pos, downlight)], seed=4,
+                             direct=direct)
+        p = result.patches
+        points = np.einsum("rc,kcx->krx", DEGREE2_RULE, p.corners())
+        d = pos - points
+        r2 = (d * d).sum(axis=2)
+        h = (i0 * d[..., 1] ** 2 / r2 ** 2).mean(axis=1)  # I0 cos(theta) cos(theta) / d^2, theta at the floor
+        ratios[direct] = (p.radiosity - p.emission)[:, 0] / (rho * h)
+        assert result.report["ledger"]["closure"] < 1e-9
+    gathered, shot = ratios[True], ratios[False]
+    assert np.ptp(gathered) < 1e-9 * gathered.mean()  # one factor for every patch: no noise of its own
+    assert gathered.mean() == pytest.approx(1.0, rel=0.02)
+    assert np.std(shot) > 100 * np.std(gathered)
+
+
 def test_the_mean_indirect_light_in_a_closed_cube_is_the_integrating_sphere_s(tmp_path):
     """CIE 171:2006 case 5.8: an isotropic source at the centre of a closed 4 m cube of reflectance
     rho: the area-weighted mean of B - E over the walls is the reflected exitance, and B = rho H, so
-    mean H_indirect = mean H - mean H_direct = rho Phi / (S (1 - rho)).  Shot, not gathered: within
-    the run's own estimate, at rho 0.5 and 0.9."""
+    mean H_indirect = mean H - mean H_direct = rho Phi / (S (1 - rho)).  Within the run's own
+    estimate, at rho 0.5 and 0.9."""
     for rho in (0.5, 0.9):
         intensity = 1.0 / (4 * math.pi)  # 1 W
         src = PointSource([2.0, 2.0, 2.0], np.full(3, intensity))
