@@ -41,7 +41,7 @@ from dcrad.divide import (
     run_divided,
     subscene_specs,
 )
-from dcrad.errors import DcradError
+from dcrad.errors import ConfigError, DcradError
 from dcrad.pipeline import divided_books, finish_run, output_views, prepare, scene_settings
 from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
@@ -269,6 +269,12 @@ class JobManager:
             scene, patches, size = prepare(scene_dir / spec.scene, spec.solver.patch_size or None,
                                            spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
                                            timings=phases, workplane=spec.solver.workplane)
+            if patches.sources:
+                # shared and divided runs carry no light sources that are not surfaces yet
+                # (emitters.check_single): refused at the upload, not when the job starts
+                names = ", ".join(s.name for s in patches.sources[:4]) + (", ..." if len(patches.sources) > 4 else "")
+                raise ConfigError(f"{spec.scene}: its glTF lights ({names}) are solved in one process for now, "
+                                  f"not by the service: dcrad solve {spec.scene} --workers 0")
             resolve(solver_config(spec.solver), len(patches))  # an accuracy beyond reach is refused now
             check_subscenes(self._divide(spec, 1).subscenes, len(patches))
             # kept for the job's run (meshing a scene twice cost 0.4 s at 201k patches)

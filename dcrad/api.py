@@ -93,7 +93,9 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
     on_progress   : called with the solver after each batch (``dcrad.progress.Progress`` reads it)
     should_stop   : polled between batches; True stops the run cleanly (the result is still whole)
     sources       : light sources that are not surfaces of the scene (``dcrad.PointSource``, any
-                    ``emitters.Emitter``), in the scene's coordinates after ``scale`` (metres)
+                    ``emitters.Emitter``), in the scene's coordinates after ``scale`` (metres),
+                    beside the file's own point and spot lights (glTF ``KHR_lights_punctual``,
+                    ``Scene.sources``; the report gains a ``gltf_lights`` section)
     luminaires    : a luminaire schedule (JSON: photometric files placed in the scene file's own
                     coordinates and units, ``luminaires.load_schedule``), lighting the scene beside
                     ``sources``; the report gains a ``luminaires`` section
@@ -114,7 +116,7 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
         loaded=None if given is None else (given, 0.0), workplane=workplane)
     timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
     placed = load_schedule(luminaires, scene, scale) if luminaires is not None else []
-    patches.sources = (*sources, *placed)
+    patches.sources = (*patches.sources, *sources, *placed)  # the file's own lights (glTF) first
     books, tracer = pipeline.solve_single(patches, config, timings, on_progress, should_stop)
     folder = Path(out) if out is not None else None
     report = pipeline.finish_run(folder, scene, books, pipeline.scene_settings(scene, size, scale, two_sided,

@@ -198,6 +198,11 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
         n = patches.units
     strategy = local(n, os.cpu_count() or 1, gathers(config, n))
     workers, choice = strategy.workers, strategy.why
+    if scene.sources and workers > 0:
+        # light sources that are not surfaces run in one process for now (emitters.check_single)
+        workers, choice = 0, Choice("workers", f"solved in this process: the scene's glTF lights "
+                                               f"({len(scene.sources)} KHR_lights_punctual point or spot light(s)) "
+                                               f"run in one process for now")
     if workers > 0 and fresh:  # the workers' run writes its own copy; out/ keeps only what it wrote
         shutil.rmtree(out / "scene", ignore_errors=True)
     return workers, choice, (scene, seconds, path, patches) if workers == 0 else None
@@ -278,8 +283,9 @@ def _summary(report: dict, out: Path) -> None:
         print(f"dcrad: {text}{per_triangle}, {100 * (err['rms_norm'] or 0.0):.2f}% of RMS(B) "
               f"(estimated, {err['rms']:.3g} W/m^2)")
     from .luminaires import summary_lines
+    from .punctual import summary_lines as light_lines
 
-    for line in summary_lines(report.get("luminaires")):
+    for line in [*summary_lines(report.get("luminaires")), *light_lines(report.get("gltf_lights"))]:
         print(f"dcrad: {line}")
     print(f"dcrad: wrote {', '.join(report['outputs'].values())}, report.json in {out}")
 

@@ -580,15 +580,17 @@ def report_section(patches, grid: dict | None = None, tracer=None) -> dict | Non
     section: dict = {"count": len(lums), "lumens": total,
                      "input_watts": sum(e["input_watts"] or 0.0 for e in entries) or None, "types": entries}
     if grid is not None and len(points):
-        lit_by_patches = bool((patches.emission > 0).any())
+        # the work plane's flux is the luminaires' alone only when nothing else lights the scene
+        lit_by_others = bool((patches.emission > 0).any()) or len(lums) < len(patches.sources)
         section["workplane_area_m2"] = area * len(points)
-        section["utilisation_factor"] = None if lit_by_patches else float(np.sum(grid["lux"]) * area / total)
+        section["utilisation_factor"] = None if lit_by_others else float(np.sum(grid["lux"]) * area / total)
         section["method"] = (
             "lumens: the exact integral of each file's interpolated candela table (its multiplier and ballast "
             "factor applied) times the schedule's multiplier; utilisation factor: sum of E x cell area over the "
             "work-plane grid (the border zone left out) / the luminaires' lumens, direct and reflected light of "
             "the whole installation (per file it cannot be told apart from one solve; null when emitting surfaces "
-            "light the scene too); workplane_direct_share: the share of a file's lumens reaching the grid directly")
+            "or other light sources light the scene too); workplane_direct_share: the share of a file's lumens "
+            "reaching the grid directly")
     return section
 
 

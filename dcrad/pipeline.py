@@ -20,7 +20,7 @@ import numpy as np
 
 import scenes
 
-from . import export, luminaires, mesh, photometry, render
+from . import export, luminaires, mesh, photometry, punctual, render
 from .accuracy import describe, noise_floor_note, resolve
 from .choices import Choice, Choices
 from .config import SolverConfig, unused_divide_note
@@ -279,10 +279,16 @@ def write_pictures(out: Path, patches: Patches, views: OutputViews, lux: np.ndar
     written["preview_png"] = "preview.png"
     written["preview_exr"] = "preview.exr"
     view = "preview camera"
+    # the false colour marks where the light sources that are not surfaces sit (emitting surfaces
+    # show themselves): its view's camera and Embree scene, to find the ones it shows
+    fc_camera, fc_tracer = camera, views.tracer if views.tracer is not None else tracer
     if views.floor_plan and views.top_camera is not None:
-        top_hits = views.top_hits or render.trace_view(patches, views.top_camera, views.mask,
-                                                       views.top_tracer or Tracer.mesh(patches, views.mask),
+        top_tracer = views.top_tracer
+        if top_tracer is None and views.top_hits is None:
+            top_tracer = Tracer.mesh(patches, views.mask)
+        top_hits = views.top_hits or render.trace_view(patches, views.top_camera, views.mask, top_tracer,
                                                        samples=render.SAMPLES)
+        fc_camera, fc_tracer = views.top_camera, top_tracer
         both_img = render.shade_view(top_hits, both, backface_color=flag)
         img = both_img[..., :3]
         export.write_png(out / "preview_top.png", render.tonemap(img, exposure=exposure, shoulder=render.SHOULDER))
@@ -294,7 +300,13 @@ def write_pictures(out: Path, patches: Patches, views: OutputViews, lux: np.ndar
     lamp = np.any(patches.emission > 0, axis=1)
     top = photometry.legend_scale(lux[~lamp], patches.area[~lamp])
     fc = both_img[..., 3:].astype(np.float64) * np.pi
-    export.write_png(out / "illuminance.png", photometry.false_colour(fc[..., 0], fc[..., 1], fc[..., 2], top))
+    picture = photometry.false_colour(fc[..., 0], fc[..., 1], fc[..., 2], top)
+    at = [s.position for s in patches.sources if getattr(s, "position", None) is not None]
+    if at:
+        if fc_tracer is None:
+            fc_tracer = Tracer.mesh(patches) if fc_camera is camera else Tracer.mesh(patches, views.mask)
+        render.draw_marks(picture, render.marks_in_view(fc_camera, np.array(at), fc_tracer), fc_camera.width)
+    export.write_png(out / "illuminance.png", picture)
     written["illuminance_png"] = "illuminance.png"
     return {"written": written, "view": view, "legend_max_lux": top}
 
@@ -475,6 +487,9 @@ def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, wid
         lums = luminaires.report_section(books.patches)
         if lums is not None:
             sections["luminaires"] = lums
+    gltf_lights = punctual.report_section(books.patches.sources)
+    if gltf_lights is not None:
+        sections["gltf_lights"] = gltf_lights
     books.timings["outputs_s"] = time.perf_counter() - t0
     timings = {k: float(books.timings.get(k, 0.0)) for k in TIMINGS} | books.timings
     report = run_report(scene, books, settings, timings, warnings, outputs)
@@ -565,7 +580,7 @@ def solve_to(
     scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases, loaded=loaded,
                                    workplane=workplane)
     if luminaires_path is not None:
-        patches.sources = tuple(luminaires.load_schedule(luminaires_path, scene, scale))
+        patches.sources = (*patches.sources, *luminaires.load_schedule(luminaires_path, scene, scale))
     t_load = time.perf_counter() - t0 + (loaded[1] if loaded is not None else 0.0)
 
     t0 = time.perf_counter()

@@ -35,6 +35,8 @@ __all__ = [
     "tonemap",
     "luminance",
     "scene_exposure",
+    "marks_in_view",
+    "draw_marks",
 ]
 
 #: the largest preview side in pixels (a 8192 x 8192 view is 67M primary rays and 1.6 GB of hits)
@@ -138,6 +140,24 @@ class Camera:
         half_w = half_h * w / h
         dirs = _unit(fwd + xx * half_w * right + yy * half_h * up)
         return np.broadcast_to(eye, dirs.shape).copy(), dirs
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where ``points`` (k,3) fall in the image, as ``rays`` casts it: (xy (k,2) pixel coordinates,
+        x to the right and y down from the image's top-left corner, pixel (row i, column j) covering
+        [j, j+1) x [i, i+1); depth (k,) m along the view direction, <= 0 behind the camera)."""
+        fwd, right, up = self.basis()
+        d = np.asarray(points, np.float64).reshape(-1, 3) - np.asarray(self.eye)
+        depth = d @ fwd
+        if self.orthographic_height is not None:
+            half_h = 0.5 * self.orthographic_height
+            scale = np.ones(len(d))
+        else:
+            half_h = math.tan(math.radians(self.fov_y) / 2.0)
+            scale = np.where(depth > 0, depth, 1.0)
+        half_w = half_h * self.width / self.height
+        x = (d @ right) / (scale * half_w)
+        y = (d @ up) / (scale * half_h)
+        return np.column_stack([(x + 1.0) / 2.0 * self.width, (1.0 - y) / 2.0 * self.height]), depth
 
 
 # ---------------------------------------------------------------------------------
@@ -567,6 +587,57 @@ def trace_view(patches, camera: Camera, mask: np.ndarray | None = None, tracer: 
                         np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(0, bool))
     return ViewHits(camera.width, camera.height, len(_jitter(samples)), np.concatenate(pixel),
                     np.concatenate(patch), np.concatenate(bcs), np.concatenate(backs))
+
+
+def marks_in_view(camera: Camera, points: np.ndarray, tracer: Tracer | None = None) -> np.ndarray:
+    """(m,2) pixel coordinates (``Camera.project``) of those ``points`` (k,3) the view shows: in front
+    of the camera, inside the image and, with ``tracer`` (the view's Embree scene), not hidden behind
+    a surface (a point on a surface, a luminaire's centre on its ceiling, counts as seen)."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    xy, depth = camera.project(points)
+    keep = (depth > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < camera.width) & (xy[:, 1] >= 0) & (xy[:, 1] < camera.height)
+    rows = np.flatnonzero(keep)
+    if tracer is not None and len(rows):
+        fwd = np.asarray(camera.basis()[0])
+        if camera.orthographic_height is not None:  # from the image plane straight along the view
+            origins = points[rows] - depth[rows, None] * fwd
+            dirs = np.broadcast_to(fwd, origins.shape).copy()
+            dist = depth[rows]
+        else:
+            origins = np.broadcast_to(np.asarray(camera.eye), (len(rows), 3)).copy()
+            d = points[rows] - origins
+            dist = np.linalg.norm(d, axis=1)
+            dirs = d / dist[:, None]
+        rows = rows[~tracer.occluded(origins, dirs, dist * (1.0 - 1e-4))]
+    return xy[rows]
+
+
+#: the marks' rings (``draw_marks``): (outer radius in pixels at a 480-pixel image, white or black),
+#: from the outside in: a white ring and dot outlined in black, seen on every colour of the map
+_MARK_RINGS = ((7.0, 0), (5.5, 255), (3.5, 0), (1.5, 255))
+
+
+def draw_marks(img: np.ndarray, xy: np.ndarray, width: int | None = None) -> np.ndarray:
+    """``img`` (H, W', 3) uint8 with a small bullseye (a white ring and centre in black outlines,
+    scaled with the image's height) centred on each pixel coordinate of ``xy`` (m,2), drawn in the
+    first ``width`` columns only (the picture, not a legend beside it).  Returns ``img``, changed."""
+    h = img.shape[0]
+    width = img.shape[1] if width is None else width
+    size = max(1.0, h / 480.0)
+    reach = int(math.ceil(_MARK_RINGS[0][0] * size)) + 1
+    offsets = np.arange(-reach, reach + 1)
+    for x, y in np.asarray(xy, np.float64).reshape(-1, 2):
+        cols = np.floor(x).astype(np.int64) + offsets
+        rows = np.floor(y).astype(np.int64) + offsets
+        cols, rows = cols[(cols >= 0) & (cols < width)], rows[(rows >= 0) & (rows < h)]
+        if not (len(cols) and len(rows)):
+            continue
+        # distance from the point to each pixel's centre
+        r = np.hypot(cols[None, :] + 0.5 - x, rows[:, None] + 0.5 - y)
+        block = img[rows[0]: rows[-1] + 1, cols[0]: cols[-1] + 1]
+        for radius, value in _MARK_RINGS:  # outermost first, each inner one painted over it
+            block[r <= radius * size] = value
+    return img
 
 
 def shade_view(view: ViewHits, corner_values: np.ndarray, backface_color=None,

@@ -19,7 +19,9 @@ Formats
     0.5 and a warning, since the glTF default 1.0 is not a valid
     reflectance), E = emissiveFactor * emissiveStrength.  A primitive without
     a material gets the default 0.5 and a warning.  The first perspective
-    camera (depth-first over the scene's nodes) gives ``Scene.camera``.
+    camera (depth-first over the scene's nodes) gives ``Scene.camera``; the
+    nodes' ``KHR_lights_punctual`` point and spot lights give ``Scene.sources``
+    (:mod:`dcrad.punctual`).
 
 Coordinates are metres.  Internally Y is up: a scene whose up axis is another
 (``up`` given, or detected by :func:`detect_up`) is rotated at load by an exact
@@ -57,7 +59,8 @@ from .texture import read_texture, uv_at, uv_means
 
 __all__ = ["Scene", "load_scene", "DEFAULT_RHO", "UP_AXES", "detect_up"]
 
-#: the scene's warning when nothing in it emits (a run given light sources drops it: pipeline.finish_run)
+#: the scene's warning when nothing in it emits: not given when the file places point or spot lights,
+#: and dropped by a run given light sources (pipeline.finish_run)
 NO_EMITTERS = "no emitters: the solution is zero"
 
 log = logging.getLogger(__name__)
@@ -112,6 +115,9 @@ class Scene:
     texture_maps: list = field(default_factory=list)  # [TextureMap]: per-patch texture means when meshing
     #: (automatic element size m, how it was found): pipeline.mesh_choice's cache
     element_choice: tuple | None = None
+    #: light sources the file holds besides its emitting surfaces (glTF KHR_lights_punctual point and
+    #: spot lights: punctual.py), in the internal frame; every mesh of the scene carries them
+    sources: tuple = ()
 
     def __len__(self) -> int:
         return len(self.faces)
@@ -150,6 +156,7 @@ class Scene:
         return Patches(
             vertices=v, faces=f, rho=rho, emission=emission,
             source=src, obj=self.obj[src], names=list(self.names), twin=twin, cluster=group,
+            sources=self.sources,
         )
 
     def _patch_rho(self, v: np.ndarray, f: np.ndarray, src: np.ndarray) -> np.ndarray:
@@ -512,6 +519,30 @@ def _node_matrix(node: dict) -> np.ndarray:
     return m
 
 
+def _gltf_nodes(header: dict, path: str):
+    """(index, node, world 4x4) of the default scene's nodes, depth-first from its roots (every node
+    no other node holds, when the file has no scenes); each node once."""
+    nodes = header.get("nodes", [])
+    scenes = header.get("scenes", [])
+    if scenes:
+        roots = scenes[header.get("scene", 0)].get("nodes", [])
+    else:
+        held = {c for n in nodes for c in n.get("children", [])}
+        roots = [i for i in range(len(nodes)) if i not in held]
+    stack, seen = [(r, np.eye(4)) for r in reversed(roots)], set()
+    while stack:
+        i, parent = stack.pop()
+        if i in seen or not 0 <= i < len(nodes):
+            continue
+        seen.add(i)
+        try:
+            world = parent @ _node_matrix(nodes[i])
+        except (KeyError, IndexError, TypeError, ValueError) as exc:
+            raise SceneFormatError(f"cannot load glTF {path}: node {i}'s transform is malformed ({exc})") from None
+        yield i, nodes[i], world
+        stack += [(c, world) for c in reversed(nodes[i].get("children", []))]
+
+
 def _gltf_camera(header: dict, scale: float, warnings: list, path: str) -> dict | None:
     """First camera node, depth-first from the default scene's roots."""
     nodes = header.get("nodes", [])
@@ -754,8 +785,12 @@ def _load_gltf(path: str, warnings: list, scale: float):
     except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
         warnings.append(f"{path}: camera not usable ({type(exc).__name__}: {exc}); ignored")
         camera = None
+    from . import punctual  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module, not the photometry
+
+    lights = punctual.read_gltf(header, path, scale, _gltf_nodes(header, path), warnings)
     cat = lambda a, shape, dt: np.concatenate(a).astype(dt) if a else np.zeros(shape, dt)  # noqa: E731
-    extras = {"two_sided": cat(sides, (0,), bool), "textured": list(dict.fromkeys(textured)), "maps": tex_maps}
+    extras = {"two_sided": cat(sides, (0,), bool), "textured": list(dict.fromkeys(textured)), "maps": tex_maps,
+              "lights": lights}
     return (
         cat(vs, (0, 3), np.float64), cat(fs, (0, 3), np.int64), cat(rhos, (0, 3), np.float64),
         cat(ems, (0, 3), np.float64), cat(objs, (0,), np.int32), list(labels),
@@ -897,7 +932,8 @@ def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool 
             f"{path}: dropped {len(bad)} degenerate triangle(s) (zero area or repeated vertices) "
             f"in {_listing(names[i] for i in obj[bad])}"
         )
-    if not (emission[valid] > 0).any():
+    lights = extras.get("lights", [])
+    if not (emission[valid] > 0).any() and not lights:
         warnings.append(NO_EMITTERS)
     want = str(up).strip().lower().lstrip("+") if up is not None else "auto"
     if want in ("auto", "") and ext != ".obj":
@@ -912,6 +948,12 @@ def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool 
         vertices = vertices @ rotation.T  # exact: a signed permutation
         camera = _rotate_camera(camera, rotation)
     sided = np.asarray(extras["two_sided"], bool) | bool(two_sided)
+    if lights:
+        from . import punctual  # noqa: PLC0415  lazy, as in _load_gltf
+
+        sources = punctual.sources(lights, rotation)
+    else:
+        sources = ()
     warnings = list(dict.fromkeys(warnings))  # one line per distinct warning
     for w in warnings:
         log.info("%s", w)
@@ -921,5 +963,5 @@ def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool 
         obj=np.ascontiguousarray(obj, np.int32), names=names, valid=valid,
         warnings=warnings, camera=camera, up=want, up_source=source, rotation=rotation,
         two_sided=sided if sided.any() else None, textured=list(extras["textured"]),
-        texture_maps=list(extras["maps"]),
+        texture_maps=list(extras["maps"]), sources=sources,
     )
