@@ -56,7 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .arrays import ray_runs
+from .arrays import ray_runs, take_rows
 from .lights import Lights, form_factors, light_polygons
 from .patches import Patches
 from .rays import Tracer
@@ -223,9 +223,10 @@ def gather_direct(patches: Patches, tracer: Tracer, emitters: np.ndarray, power:
         ok = np.flatnonzero((cx > 0) & (cy > 0) & (r != e))
         start = x[ok] + offset * nx[ok]
         seg = (y[ok] + offset * ny[ok]) - start
-        visible = ~tracer.occluded(start, seg, np.ones(len(ok)))
-        ok = ok[visible]
-        geom = cx[ok] * cy[ok] / (math.pi * r2[ok])
+        visible = tracer.visible(start, seg, np.ones(len(ok)))
+        lit = visible > 0
+        ok = ok[lit]
+        geom = cx[ok] * cy[ok] / (math.pi * r2[ok]) * visible[lit]
         weight = phi_g[grp[ok]] / q_sel[ok]  # Phi_L / P(L | receiver): power over the choice's probability
         contrib = (weight * patches.area[r[ok]] / s * geom)[:, None] * colour[e_local[ok]]
         slot = owner[ok]
@@ -280,18 +281,33 @@ def landing_rays(shadow_rays: int, receivers: int, emitters: int, batch_rays: in
 
 def rescale_to_landed(gathered: DirectTally, shot, patches: Patches) -> DirectTally | None:
     """The gather's distribution with the landed total and the losses of the emitters' own
-    rays ``shot`` (a ``shoot.Tally``); None when some channel landed light the gather missed."""
+    rays ``shot`` (a ``shoot.Tally``); None when some channel landed light the gather missed.
+
+    The gather covers the receivers (patches that reflect: rho > 0 in some channel), so it is
+    scaled to what the rays landed on receivers only; what they landed on black patches (and
+    panes) stays as the rays put it.  Scaled to all they landed, a black floor's share went to
+    the grey one beside it: twice its light (tests/test_glass.py)."""
+    on_receiver = take_rows(patches.rho, shot.hit).any(axis=1)
     got = gathered.received.sum(axis=0)
-    landed = shot.received.sum(axis=0)
+    landed = shot.received[on_receiver].sum(axis=0)
     if np.any((got <= 0) & (np.abs(landed) > 0)):
         return None
     scale = np.where(got > 0, landed / np.where(got > 0, got, 1.0), 0.0)
     received = gathered.received * scale
     received_a = gathered.received_a * scale
+    hit = gathered.hit
+    black = np.flatnonzero(~on_receiver)
+    if len(black):  # disjoint from the gathered receivers: merged in row order
+        hit = np.concatenate([hit, shot.hit[black]])
+        order = np.argsort(hit, kind="stable")
+        hit = hit[order]
+        shot_a = shot.received_a[black] if shot.received_a is not None else 0.5 * shot.received[black]
+        received = np.concatenate([received, shot.received[black]])[order]
+        received_a = np.concatenate([received_a, shot_a])[order]
     magnitude = np.abs(received)
-    return DirectTally(received, gathered.hit, shot.escaped, shot.back_faces, shot.back_by_obj,
+    return DirectTally(received, hit, shot.escaped, shot.back_faces, shot.back_by_obj,
                        gathered.portal, gathered.portal_prim, gathered.portal_t, magnitude.sum(axis=0),
-                       (magnitude * patches.rho[gathered.hit]).sum(axis=0), shot.lost, received_a, gathered.rays)
+                       (magnitude * patches.rho[hit]).sum(axis=0), shot.lost, received_a, gathered.rays)
 
 
 def merge(a: DirectTally, b: DirectTally, patches: Patches) -> DirectTally:
@@ -691,9 +707,9 @@ def _visibility(patches: Patches, tracer: Tracer, lights: Lights, emitters: np.n
         for j in range(3):
             origin[:, j] = x[j][ok] + offset * nx[j][ok]
             seg[:, j] = (y[j][ok] + offset * ny[j][ok]) - origin[:, j]
-        visible = ~tracer.occluded(origin, seg, np.ones(len(ok)))
+        visible = tracer.visible(origin, seg, np.ones(len(ok)))  # through glass: its transmittance
         at = local[ok]
-        for row, wgt in enumerate((geom * visible, geom, visible.astype(np.float64), None)):
+        for row, wgt in enumerate((geom * visible, geom, visible, None)):
             out[row, lo:hi] += np.bincount(at, weights=wgt, minlength=hi - lo)
     return out[0], out[1], out[2], out[3]
 

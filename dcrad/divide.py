@@ -48,6 +48,7 @@ from .emitters import check_single
 from .energy import Ledger
 from .errors import ConfigError
 from .noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
+from .optics import check_single as check_glass
 from .partition import clip, partition
 from .patches import Patches
 from .rays import Tracer
@@ -866,6 +867,7 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     sends these to workers).  Returns (specs, boundaries, parents, partition).
     """
     check_single(patches.sources, "divided")
+    check_glass(patches.glazing, "divided")
     if planes is None and boxes is None:
         check_subscenes(divide.subscenes, len(patches))
     config = resolve(config, patches.units)  # the job's ray density: from its patch count

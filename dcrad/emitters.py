@@ -141,7 +141,8 @@ class PointSource:
                         half=half if split else None)
 
     def irradiance(self, points: np.ndarray, normals: np.ndarray, tracer, offset: float) -> np.ndarray:
-        """I(-d) cos / r^2 where the point sees the source (one shadow ray a point: exact)."""
+        """I(-d) cos / r^2 where the point sees the source (one shadow ray a point: exact), times the
+        transmittance of the panes in between (optics.py)."""
         points = np.asarray(points, np.float64)
         d = self.position - points
         r = np.sqrt(np.einsum("ij,ij->i", d, d))
@@ -152,6 +153,10 @@ class PointSource:
         if not len(lit):
             return out
         start = points[lit] + offset * toward[lit]
+        if getattr(tracer, "glazing", None) is not None:  # through glass: tau(theta) of every pane crossed
+            through = tracer.transmittance(start, toward[lit], r[lit] - 2.0 * offset)
+            out[lit] = self.intensity_at(-toward[lit]) * (cos[lit] / r[lit] ** 2)[:, None] * through
+            return out
         seen = ~tracer.occluded(start, toward[lit], r[lit] - 2.0 * offset)
         lit = lit[seen]
         out[lit] = self.intensity_at(-toward[lit]) * (cos[lit] / r[lit] ** 2)[:, None]
@@ -162,16 +167,30 @@ class PointSource:
 PATCH_CHUNK = 1 << 16
 
 
-def patch_irradiance(source: Emitter, corners: np.ndarray, normals: np.ndarray, tracer, offset: float) -> np.ndarray:
+def patch_irradiance(source: Emitter, corners: np.ndarray, normals: np.ndarray, tracer, offset: float,
+                     glazing=None) -> np.ndarray:
     """(k,3) W/m^2: the mean of ``source``'s direct irradiance over each triangle ``corners`` (k,3,3)
     facing ``normals`` (k,3), by the degree-2 rule (three points, a shadow ray each), in chunks of
-    PATCH_CHUNK triangles."""
+    PATCH_CHUNK triangles.  ``glazing`` (optics.Glazing of these k rows, or None): a pane keeps only
+    (1 - tau(theta)) of what meets it, the rest goes on through it (a point source's direction)."""
     out = np.zeros((len(corners), 3))
     r = len(DEGREE2_RULE)
+    panes = None if glazing is None else np.asarray(glazing.mask, bool)
+    position = getattr(source, "position", None)
+    if panes is not None and panes.any() and position is None:
+        raise ConfigError(f"{source.name}: a light source without a position cannot light glass yet")
     for lo in range(0, len(corners), PATCH_CHUNK):
         c = np.asarray(corners[lo:lo + PATCH_CHUNK], np.float64)
         points = np.einsum("rc,kcx->krx", DEGREE2_RULE, c).reshape(-1, 3)
-        h = source.irradiance(points, np.repeat(normals[lo:lo + PATCH_CHUNK], r, axis=0), tracer, offset)
+        facing = np.repeat(normals[lo:lo + PATCH_CHUNK], r, axis=0)
+        h = source.irradiance(points, facing, tracer, offset)
+        if panes is not None:
+            on = np.flatnonzero(np.repeat(panes[lo:lo + len(c)], r))
+            if len(on):
+                d = np.asarray(position, np.float64) - points[on]
+                cos = np.abs(np.einsum("ij,ij->i", d, facing[on])) / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
+                rows = np.repeat(np.arange(lo, lo + len(c)), r)[on]
+                h[on] *= 1.0 - glazing.tau(rows, cos)
         out[lo:lo + len(c)] = h.reshape(len(c), r, 3).mean(axis=1)
     return out
 

@@ -11,6 +11,8 @@ from functools import cached_property
 
 import numpy as np
 
+from .optics import Glazing
+
 __all__ = ["Patches", "triangle_areas", "triangle_normals", "subdivide", "remap_twin"]
 
 
@@ -89,6 +91,8 @@ class Patches:
     cluster     (n,)   i8   small neighbours of one surface that share one B
                             (mesh.clusters: their irradiance is pooled when
                             read, ``pool``); -1 for a patch that stands alone
+    glazing     Glazing     panes: which patches transmit, tau_n, index
+                            (optics.py); None without glass
     ==========  ==========  ===================================================
     """
 
@@ -106,6 +110,9 @@ class Patches:
     cluster: np.ndarray = None  # type: ignore[assignment]
     #: light sources that are not patches (emitters.Emitter: point lights, luminaires); one process only
     sources: tuple = ()
+    #: the panes among the patches (optics.Glazing: ideal specular transmitters, the seed's eq. 1.2);
+    #: None: no glass.  One process only for now (``optics.check_single``)
+    glazing: Glazing | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, np.float64)
@@ -298,7 +305,11 @@ class Patches:
 
     @property
     def is_grey(self) -> bool:
-        """True when every rho and E has equal channels (one channel would do)."""
+        """True when every rho and E has equal channels and every light source emits equal power in
+        each and every pane passes equal shares (one channel would do: a red light in a grey room
+        lights the red channel only)."""
         return bool(
             np.all(self.rho == self.rho[:, :1]) and np.all(self.emission == self.emission[:, :1])
+            and all(np.all(p == p[0]) for p in (np.asarray(s.power(), np.float64) for s in self.sources))
+            and (self.glazing is None or bool(np.all(self.glazing.tau_n == self.glazing.tau_n[:, :1])))
         )

@@ -155,7 +155,7 @@ def _gather(patches, tracer: Tracer, origins: np.ndarray, normals: np.ndarray, r
         off = 2e-6 * patches.scale
         start = triangle_points(origins[:, 0], origins[:, 1], origins[:, 2], u[:, 2:], owner)
         start = _inward(start, origins.mean(axis=1)[owner], off) + off * normals[owner]
-    prim, _ = tracer.intersect(start, d)
+    prim, _, _, tau = tracer.through(start, d)  # beyond glass, read times its tau
     n = len(patches)
     hit = (prim != MISS) & (prim < n)
     p = np.where(hit, prim, 0)
@@ -166,7 +166,7 @@ def _gather(patches, tracer: Tracer, origins: np.ndarray, normals: np.ndarray, r
     if values is None:
         h = np.zeros((k, 3))
     else:
-        seen = np.where((hit & ~lost)[:, None], values[p], 0.0)
+        seen = np.where((hit & ~lost)[:, None], values[p], 0.0) * tau
         h = np.stack([np.bincount(owner, weights=seen[:, c], minlength=k) for c in range(3)], axis=1) / rays
     return h, np.bincount(owner, weights=lost.astype(np.float64), minlength=k) / rays
 
@@ -337,7 +337,7 @@ class _Emitters:
         # surface too, in Embree's float32, and would hit it
         origin = _inward(x[ok], tri.mean(axis=1)[local[ok]], offset) + offset * nx[ok]
         end = _inward(y[ok], mid[ok], offset) + offset * ny[ok]
-        return ok, g, ~tracer.occluded(origin, end - origin, np.ones(len(ok)))
+        return ok, g, tracer.visible(origin, end - origin, np.ones(len(ok)))
 
     def shadow(self, tracer: Tracer, corners: np.ndarray, normals: np.ndarray, rec: np.ndarray,
                light: np.ndarray, shift: np.ndarray, first: np.ndarray, counts: np.ndarray,

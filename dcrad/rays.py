@@ -14,6 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from .config import TOL
+from .optics import MAX_PANES, Glazing
+
 __all__ = ["Tracer", "MISS", "embree_available"]
 
 MISS = -1
@@ -64,6 +67,8 @@ class Tracer:
         if backend == "embree" and not embree_available():
             raise ImportError(f"embreex is not importable: {_EMBREE_ERROR}")
         self.backend = backend
+        #: the panes among the primitives (optics.Glazing; None: no glass): ``transmittance``
+        self.glazing: Glazing | None = None
         if self.n:
             lo, hi = corners.min(axis=0), corners.max(axis=0)
         else:
@@ -89,7 +94,11 @@ class Tracer:
         """The tracer of ``patches`` (its rows ``rows``: primitive i is rows[i]) from its shared
         vertices: the same hits as ``Tracer(patches.corners(rows))``, built in half the time."""
         faces = patches.faces if rows is None else patches.faces[rows]
-        return cls(None, backend, vertices=patches.vertices, faces=faces)
+        tracer = cls(None, backend, vertices=patches.vertices, faces=faces)
+        glazing = getattr(patches, "glazing", None)
+        if glazing is not None:
+            tracer.glazing = glazing if rows is None else glazing.take(rows)
+        return tracer
 
     # ------------------------------------------------------------------------------
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, normals: bool = False):
@@ -125,6 +134,88 @@ class Tracer:
         ng = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).astype(np.float32)
         ng[prim == MISS] = 0.0
         return prim, t * self.unit, ng
+
+    def transmittance(self, origins: np.ndarray, dirs: np.ndarray, tmax: np.ndarray) -> np.ndarray:
+        """(m,3) the share of light that gets from ``origins`` to t = ``tmax`` along unit ``dirs``:
+        0 where an opaque surface is in the way, else the product of tau(theta) of the panes
+        crossed (optics.py); 1 where nothing is.  Without glass it is ``occluded``'s complement."""
+        origins = np.asarray(origins, np.float64)
+        dirs = np.asarray(dirs, np.float64)
+        m = len(origins)
+        tmax = np.array(np.broadcast_to(np.asarray(tmax, np.float64), (m,)))
+        glazing = self.glazing
+        if glazing is None:
+            return np.repeat((~self.occluded(origins, dirs, tmax)).astype(np.float64)[:, None], 3, axis=1)
+        out = np.ones((m, 3))
+        active = np.arange(m)
+        o, left = origins.copy(), tmax
+        step = TOL.ray_offset * self.scale
+        for _ in range(MAX_PANES + 1):
+            if not len(active):
+                break
+            prim, t, ng = self.intersect(o, dirs[active], normals=True)
+            blocked = (prim != MISS) & (t < left)
+            pane = blocked & glazing.mask[np.maximum(prim, 0)]
+            out[active[blocked & ~pane]] = 0.0
+            rows = np.flatnonzero(pane)
+            if not len(rows):
+                break
+            d = dirs[active[rows]]
+            g = ng[rows].astype(np.float64)
+            cos = np.abs(np.einsum("ij,ij->i", d, g)) / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+            out[active[rows]] *= glazing.tau(prim[rows], cos)
+            o = o[rows] + (t[rows] + step)[:, None] * d
+            left = left[rows] - t[rows] - step
+            active = active[rows]
+        else:
+            out[active] = 0.0  # more panes than MAX_PANES: what is left stays on them
+        return out
+
+    def visible(self, origins: np.ndarray, dirs: np.ndarray, tmax: np.ndarray) -> np.ndarray:
+        """(m,) float: the visibility a shadow ray finds, 1 or 0 (``occluded``), and through glass the
+        mean over the channels of ``transmittance`` (exact for grey glass, which the gathers' single
+        visibility per ray can carry; a tinted pane's channels are averaged there)."""
+        if self.glazing is None:
+            return (~self.occluded(origins, dirs, tmax)).astype(np.float64)
+        return self.transmittance(origins, dirs, tmax).mean(axis=1)
+
+    def through(self, origins: np.ndarray, dirs: np.ndarray):
+        """(prim, t, ng, tau): the first hit of each ray that is not a pane (MISS where none), as
+        ``intersect(normals=True)``, t from the origin, and (m,3) the product of tau(theta) of the panes
+        crossed before it (1 without glass).  A gather ray reads what lies beyond the glass times tau
+        (a pane's own diffuse reflection, its Kd, is not read: 0 for clear glass)."""
+        prim, t, ng = self.intersect(origins, dirs, normals=True)
+        m = len(prim)
+        tau = np.ones((m, 3))
+        glazing = self.glazing
+        if glazing is None or m == 0:
+            return prim, t, ng, tau
+        prim, t, ng = prim.copy(), t.copy(), np.array(ng)
+        step = TOL.ray_offset * self.scale
+        dirs = np.asarray(dirs, np.float64)
+        active = np.arange(m)
+        o = np.asarray(origins, np.float64)
+        base = np.zeros(m)
+        cur_prim, cur_t, cur_ng = prim, t, ng
+        for _ in range(MAX_PANES + 1):
+            pane = (cur_prim != MISS) & (cur_prim < len(glazing)) & glazing.mask[np.clip(cur_prim, 0, len(glazing) - 1)]
+            rows = np.flatnonzero(pane)
+            if not len(rows):
+                break
+            idx = active[rows]
+            d = dirs[idx]
+            g = cur_ng[rows].astype(np.float64)
+            cos = np.abs(np.einsum("ij,ij->i", d, g)) / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+            tau[idx] *= glazing.tau(cur_prim[rows], cos)
+            o = o[rows] + (cur_t[rows] + step)[:, None] * d
+            base = base[rows] + cur_t[rows] + step
+            active = idx
+            cur_prim, cur_t, cur_ng = self.intersect(o, d, normals=True)
+            prim[active], t[active], ng[active] = cur_prim, base + cur_t, cur_ng
+        else:
+            prim[active], t[active] = MISS, np.inf  # more panes than MAX_PANES: nothing read beyond
+            tau[active] = 0.0
+        return prim, t, ng, tau
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray, tmax: np.ndarray) -> np.ndarray:
         """(m,) bool: is anything hit with 0 < t < tmax (t in units of |dir|)?"""

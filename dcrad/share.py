@@ -56,6 +56,7 @@ from .emitters import check_single
 from .energy import ACCOUNTS, MAGNITUDES, Ledger
 from .final import FinalGather
 from .noise import Estimate, NoiseTally, bias_ambient, combine, finite
+from .optics import check_single as check_glass
 from .patches import Patches
 from .rays import Tracer
 from .report import RunBooks
@@ -378,6 +379,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     when the lights make no exact form factors (the caller solves another way).  ``on_phase(name,
     elapsed s, rays so far, estimate or None)`` after each phase.  The result is left in ``patches``."""
     check_single(patches.sources, "shared")
+    check_glass(patches.glazing, "shared")
     cfg = resolve(config, patches.units)
     t0 = time.perf_counter()
     emission = patches.emission.copy()

@@ -19,6 +19,7 @@ import numpy as np
 from .arrays import colsum, put_rows, rowsum, take_rows
 from .config import TOL
 from .noise import half_mask, split_power
+from .optics import MAX_PANES
 from .patches import Patches
 from .rays import MISS, Tracer
 from .sampling import cosine_hemisphere_columns, kronecker_alpha, lattice, onb
@@ -198,6 +199,8 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
     """
     n = len(patches)
     prim, t, ng = tracer.intersect(batch.origins, batch.dirs, normals=True)
+    if tracer.glazing is not None:  # panes pass tau(theta) of a ray on: tally what ends where
+        prim, t, ng, batch = through_panes(tracer, batch, prim, t, ng)
     missed = prim == MISS
     if tracer.n > n:  # boundary primitives follow the patches (subscenes)
         on_patch = ~missed & (prim < n)
@@ -263,6 +266,44 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
         lost=colsum(np.abs(power_back)) + colsum(np.abs(power_missed)),
         received_a=received_a,
     )
+
+
+def through_panes(tracer: Tracer, batch: RayBatch, prim: np.ndarray, t: np.ndarray, ng: np.ndarray):
+    """The ends of ``batch``'s rays in a scene with glass (optics.py; the seed's eq. 1.2): a ray that
+    meets a pane leaves (1 - tau(theta)) of its power on it and goes on, from just beyond it in the
+    same direction, with tau(theta) of it, through at most MAX_PANES panes.  Returns (prim, t, ng,
+    events): one row per power that ends somewhere (a surface, a pane, nothing), ``events`` a
+    RayBatch of their directions, powers and halves, for ``trace`` to tally like rays."""
+    glazing = tracer.glazing
+    assert glazing is not None
+    step = TOL.ray_offset * tracer.scale
+    origins, dirs, power, half = batch.origins, batch.dirs, batch.power, batch.half
+    ends: list[tuple] = []
+    for k in range(MAX_PANES + 1):
+        pane = (prim != MISS) & (prim < len(glazing)) & glazing.mask[np.clip(prim, 0, len(glazing) - 1)]
+        if k == MAX_PANES:
+            pane[:] = False  # what is left stays on the last pane met
+        stop = np.flatnonzero(~pane)
+        rows = np.flatnonzero(pane)
+        if len(rows):
+            g = ng[rows].astype(np.float64)
+            d = dirs[rows]
+            cos = np.abs(np.einsum("ij,ij->i", d, g)) / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+            tau = glazing.tau(prim[rows], cos)
+            ends.append((prim[rows], t[rows], ng[rows], d, power[rows] * (1.0 - tau),
+                         None if half is None else half[rows]))
+        ends.append((prim[stop], t[stop], ng[stop], dirs[stop], power[stop], None if half is None else half[stop]))
+        if not len(rows):
+            break
+        origins = origins[rows] + (t[rows] + step)[:, None] * dirs[rows]
+        dirs, power = dirs[rows], power[rows] * tau
+        half = None if half is None else half[rows]
+        prim, t, ng = tracer.intersect(origins, dirs, normals=True)
+    cat = [np.concatenate(column) for column in zip(*[e[:5] for e in ends])]
+    halves = None if batch.half is None else np.concatenate([e[5] for e in ends])
+    events = RayBatch(origins=cat[3], dirs=cat[3], power=cat[4], shooter=np.zeros(len(cat[0]), np.int64),
+                      half=halves)
+    return cat[0], cat[1], cat[2], events
 
 
 @dataclass

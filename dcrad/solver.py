@@ -476,8 +476,10 @@ class Solver:
         p = self.patches
         power = np.asarray(source.power(), np.float64)
         t0 = time.perf_counter()
-        rows = np.flatnonzero(p.area > 0)
-        received = patch_irradiance(source, p.corners(rows), p.normal[rows], self.tracer, ray_offset(p))
+        # the receivers (what reflects); the rays' own hits book the rest (rescale_to_landed)
+        rows = np.flatnonzero((p.area > 0) & p.rho.any(axis=1))
+        glazing = None if p.glazing is None else p.glazing.take(rows)
+        received = patch_irradiance(source, p.corners(rows), p.normal[rows], self.tracer, ray_offset(p), glazing)
         received *= p.area[rows, None]
         keep = np.flatnonzero(received.any(axis=1))
         shadow = len(rows) * 3
@@ -532,7 +534,11 @@ class Solver:
             # direct light is not in it: it would be laid out as if it were reflected light
             plan = None
             self.choices.add("direct", "no final plan: the scene has light sources that are not patches "
-                                       "(emitters.py), whose shot direct light the final gather cannot tell apart")
+                                       "(emitters.py), whose direct light the final gather cannot tell apart")
+        if plan is not None and p.glazing is not None and p.glazing.mask.any():
+            plan = None  # final.read_hits reads the first surface a ray meets, a pane too
+            self.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
+                                       "see through yet (the shooting and the direct gather do)")
         if plan is not None:
             shadow = plan.shadow_rays
             if cfg.max_rays:
