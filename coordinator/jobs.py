@@ -42,6 +42,7 @@ from dcrad.divide import (
     subscene_specs,
 )
 from dcrad.errors import ConfigError, DcradError
+from dcrad.optics import opaque_for
 from dcrad.pipeline import divided_books, finish_run, output_views, prepare, scene_settings
 from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
@@ -275,6 +276,9 @@ class JobManager:
                 names = ", ".join(s.name for s in patches.sources[:4]) + (", ..." if len(patches.sources) > 4 else "")
                 raise ConfigError(f"{spec.scene}: its glTF lights ({names}) are solved in one process for now, "
                                   f"not by the service: dcrad solve {spec.scene} --workers 0")
+            glass = opaque_for(patches, "the service's")  # shared and divided runs carry no glass yet
+            if glass is not None:
+                scene.warnings.append(glass)
             resolve(solver_config(spec.solver), len(patches))  # an accuracy beyond reach is refused now
             check_subscenes(self._divide(spec, 1).subscenes, len(patches))
             # kept for the job's run (meshing a scene twice cost 0.4 s at 201k patches)
@@ -335,6 +339,9 @@ class JobManager:
             scene, patches, size = prepare(job.root / "scene" / spec.scene, spec.solver.patch_size or None,
                                            spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
                                            timings=phases)
+            glass = opaque_for(patches, "the service's")  # as at the upload (``submit``)
+            if glass is not None:
+                scene.warnings.append(glass)
             timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
         mem = MemoryLog(job.id)
         mem("load and mesh")

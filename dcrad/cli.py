@@ -203,6 +203,10 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
         workers, choice = 0, Choice("workers", f"solved in this process: the scene's glTF lights "
                                                f"({len(scene.sources)} KHR_lights_punctual point or spot light(s)) "
                                                f"run in one process for now")
+    if scene.tau is not None and workers > 0:
+        # glass runs in one process for now (optics.check_single)
+        workers, choice = 0, Choice("workers", "solved in this process: the scene's glass (ideal specular "
+                                               "transmitters, optics.py) runs in one process for now")
     if workers > 0 and fresh:  # the workers' run writes its own copy; out/ keeps only what it wrote
         shutil.rmtree(out / "scene", ignore_errors=True)
     return workers, choice, (scene, seconds, path, patches) if workers == 0 else None

@@ -244,6 +244,13 @@ class MtlMaterial:
     ke_text: str = ""
     textures: list = field(default_factory=list)  # [(key, path as written)]
     two_sided: bool = False  # ``two_sided 1`` (a dcrad extension; other readers ignore it)
+    tf: list | None = None  # ``Tf r g b``: transmission filter (glass: its normal transmittance)
+    tf_text: str = ""
+    d: float | None = None  # ``d`` dissolve (1 opaque), or 1 - ``Tr``
+    d_text: str = ""
+    ni: float | None = None  # ``Ni`` refractive index
+    ni_text: str = ""
+    illum: int | None = None  # ``illum`` model: 4, 6, 7 and 9 are transparent (glass)
 
 
 def _floats(tokens, mat: MtlMaterial, key: str, text: str, no: int):
@@ -289,6 +296,29 @@ def read_mtl(path: str, label: str, folder: str, exact: bool = True) -> dict[str
         elif key == "ke":
             mat.ke_text = " ".join(parts)
             mat.ke = _floats(parts[1:], mat, "Ke", mat.ke_text, no)
+        elif key == "tf":
+            mat.tf_text = " ".join(parts)
+            if parts[1].lower() in ("spectral", "xyz"):
+                raise SceneFormatError(f"material '{mat.name}' in {label} line {no}: '{mat.tf_text}': only "
+                                       f"Tf r g b is read (not spectral or xyz)")
+            mat.tf = _floats(parts[1:], mat, "Tf", mat.tf_text, no)
+        elif key in ("d", "tr", "ni"):
+            text = " ".join(parts)
+            try:
+                value = float(parts[-1])  # ``d -halo 0.5``: the factor is last
+            except ValueError:
+                raise SceneFormatError(f"material '{mat.name}' in {label} line {no}: cannot read '{text}'; "
+                                       f"expected {parts[0]} and a number") from None
+            if key == "ni":
+                mat.ni, mat.ni_text = value, text
+            else:
+                mat.d, mat.d_text = (value if key == "d" else 1.0 - value), text
+        elif key == "illum":
+            try:
+                mat.illum = int(parts[1])
+            except ValueError:
+                raise SceneFormatError(f"material '{mat.name}' in {label} line {no}: cannot read "
+                                       f"'{' '.join(parts)}'; expected illum and a model number") from None
         elif key == "two_sided":
             mat.two_sided = parts[1].lower() in ("1", "on", "true", "yes")
         elif key.startswith("map_") or key in _MAP_KEYS:

@@ -265,9 +265,13 @@ class Patches:
     @property
     def units(self) -> int:
         """The solver's unknowns: patches that stand alone, and one per cluster (what the ray
-        density follows, accuracy.rays_for)."""
-        alone = int((self.cluster < 0).sum())
-        return alone + (len(np.unique(self.cluster[self.cluster >= 0])) if alone < len(self) else 0)
+        density follows, accuracy.rays_for), of those that reflect: a black patch's B is its E
+        whatever lands on it (the ice-cream store's 42,856 black patches, panes most of them, are
+        no unknowns).  At least 1."""
+        reflects = self.rho.any(axis=1)
+        alone = int((reflects & (self.cluster < 0)).sum())
+        pooled = self.cluster[reflects & (self.cluster >= 0)]
+        return max(alone + (len(np.unique(pooled)) if len(pooled) else 0), 1)
 
     def reads(self, per_triangle: bool = False) -> np.ndarray:
         """(n,) i8: the unit each patch's B is read in: its cluster, else the patch itself (an

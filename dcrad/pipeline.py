@@ -20,7 +20,7 @@ import numpy as np
 
 import scenes
 
-from . import export, luminaires, mesh, photometry, punctual, render
+from . import export, luminaires, mesh, optics, photometry, punctual, render
 from .accuracy import describe, noise_floor_note, resolve
 from .choices import Choice, Choices
 from .config import SolverConfig, unused_divide_note
@@ -586,6 +586,9 @@ def solve_to(
     t0 = time.perf_counter()
     tracer = None
     if divide is not None and divide.subscenes > 1:
+        glass = optics.opaque_for(patches, "divided")
+        if glass is not None:
+            scene.warnings.append(glass)
         progress = (lambda run: on_progress(_DividedView(run))) if on_progress else None
         subs, boundaries, parents, part = build_subscenes(patches, config, divide,
                                                           planes=scene.planes_to_internal(planes))

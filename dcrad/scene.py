@@ -54,6 +54,7 @@ from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
 from .mesh import clusters, refine
 from .objfile import inside_folder, mtllib_files, parse_obj, read_mtl
+from .optics import DEFAULT_IOR, Glazing
 from .patches import Patches, triangle_areas, triangle_normals
 from .texture import read_texture, uv_at, uv_means
 
@@ -115,6 +116,10 @@ class Scene:
     texture_maps: list = field(default_factory=list)  # [TextureMap]: per-patch texture means when meshing
     #: (automatic element size m, how it was found): pipeline.mesh_choice's cache
     element_choice: tuple | None = None
+    #: glass (optics.py): (T,3) normal transmittance of each input triangle (0: opaque) and (T,)
+    #: refractive index; None when the file has no glass
+    tau: np.ndarray | None = None
+    ior: np.ndarray | None = None
     #: light sources the file holds besides its emitting surfaces (glTF KHR_lights_punctual point and
     #: spot lights: punctual.py), in the internal frame; every mesh of the scene carries them
     sources: tuple = ()
@@ -153,10 +158,16 @@ class Scene:
             src = np.concatenate([src, src[back]])
             emission = np.concatenate([emission, np.zeros((len(back), 3))])
             rho = np.concatenate([rho, rho[back]])
+        glazing = None
+        if self.tau is not None and self.tau[src].any():
+            tau_n = self.tau[src]
+            ior = self.ior[src] if self.ior is not None else np.full(len(src), DEFAULT_IOR)
+            glazing = Glazing(tau_n.any(axis=1), tau_n, ior)
+            group = np.where(glazing.mask, -1, group)  # a pane's light is what passes: not pooled
         return Patches(
             vertices=v, faces=f, rho=rho, emission=emission,
             source=src, obj=self.obj[src], names=list(self.names), twin=twin, cluster=group,
-            sources=self.sources,
+            sources=self.sources, glazing=glazing,
         )
 
     def _patch_rho(self, v: np.ndarray, f: np.ndarray, src: np.ndarray) -> np.ndarray:
@@ -214,6 +225,31 @@ def _check_rho(values, where: str, text: str, factor: bool = False) -> np.ndarra
     return rho
 
 
+#: MTL illumination models whose Tf / d make a transparent surface (glass): 4, 6, 7 and 9
+GLASS_ILLUM = (4, 6, 7, 9)
+
+
+def _mtl_glass(m, where: str, warnings: list) -> tuple[np.ndarray, float] | None:
+    """(normal transmittance (3,), refractive index) of an MTL material that is glass (optics.py):
+    ``illum`` 4, 6, 7 or 9 with ``Tf`` (its normal transmittance) or ``d`` below 1 (1 - d), ``Ni``
+    (1.52 when absent); None for an opaque one.  Tf or d on another illum model is reported, not
+    silently taken or dropped."""
+    if m.tf is None and (m.d is None or m.d >= 1.0):
+        return None
+    given = m.tf_text or m.d_text
+    if m.illum not in GLASS_ILLUM:
+        warnings.append(f"{where}: '{given}' with illum {m.illum} is not glass (illum 4, 6, 7 or 9 make it "
+                        f"transmit); the surface is opaque")
+        return None
+    tau = np.asarray(m.tf if m.tf is not None else [1.0 - float(m.d)] * 3, np.float64)[:3]
+    if not (np.isfinite(tau).all() and (tau >= 0).all() and (tau <= 1).all()):
+        raise SceneValueError(f"{where}: {given} is a transmittance outside [0, 1]")
+    ni = DEFAULT_IOR if m.ni is None else float(m.ni)
+    if not (math.isfinite(ni) and ni >= 1.0):
+        raise SceneValueError(f"{where}: {m.ni_text} is not a refractive index (a finite number >= 1)")
+    return tau, ni
+
+
 def _check_emission(values, where: str, text: str) -> np.ndarray:
     e = np.asarray(values, np.float64)[:3]
     if not np.isfinite(e).all() or (e < 0).any():
@@ -260,6 +296,7 @@ def _load_obj(path: str, warnings: list):
     rho, em = np.full((ng, 3), DEFAULT_RHO), np.zeros((ng, 3))
     names, no_mtl, unknown = [], [], []
     sided = np.zeros(ng, bool)
+    tau, ior = np.zeros((ng, 3)), np.full(ng, DEFAULT_IOR)
     maps: dict[int, tuple] = {}  # group -> (material, texture path as written, full path)
     for g, (obj, mname) in enumerate(data.groups):
         names.append(f"{obj}/{mname if mname is not None else '(default)'}")
@@ -282,6 +319,10 @@ def _load_obj(path: str, warnings: list):
         if m.ke is not None:
             em[g] = _check_emission(m.ke, where, m.ke_text)
         sided[g] = m.two_sided
+        glass = _mtl_glass(m, where, warnings)
+        if glass is not None:
+            tau[g], ior[g] = glass
+            sided[g] = True  # a pane is met from both sides alike: what it keeps lands on the side met
         if kd_map:
             maps[g] = (m, kd_map[-1], inside_folder(folder, kd_map[-1], where, "texture map_Kd"))
         others = [k for k, _ in m.textures if k.lower() != "map_kd"]
@@ -312,6 +353,8 @@ def _load_obj(path: str, warnings: list):
         textured.append(names[k])
         tex_maps.append(TextureMap(rows, rho[k].copy(), image, uv))
     extras = {"two_sided": sided[grp], "textured": list(dict.fromkeys(textured)), "maps": tex_maps}
+    if tau.any():
+        extras["tau"], extras["ior"] = tau[grp], ior[grp]
     return data.vertices, data.faces, rho_t, em[grp], gmap[grp], list(label_ix), None, extras
 
 
@@ -598,6 +641,10 @@ def _gltf_materials(header: dict, path: str, warnings: list) -> list:
         except (TypeError, ValueError, AttributeError) as exc:
             raise SceneFormatError(f"{where}: cannot read its factors ({exc})") from None
         textured = isinstance(m.get("pbrMetallicRoughness", {}).get("baseColorTexture"), dict)
+        if "KHR_materials_transmission" in (m.get("extensions") or {}):
+            # glass from glTF is not read yet (optics.py takes MTL Tf / d with illum 4, 6, 7, 9): said, not dropped
+            warnings.append(f"{where}: KHR_materials_transmission is not read yet; the surface is opaque "
+                            f"(its base colour reflects, no light passes)")
         if base is None and textured:
             rho = np.ones(3)  # glTF's default factor, times the texture
         elif base is None:
@@ -963,5 +1010,6 @@ def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool 
         obj=np.ascontiguousarray(obj, np.int32), names=names, valid=valid,
         warnings=warnings, camera=camera, up=want, up_source=source, rotation=rotation,
         two_sided=sided if sided.any() else None, textured=list(extras["textured"]),
+        tau=extras.get("tau"), ior=extras.get("ior"),
         texture_maps=list(extras["maps"]), sources=sources,
     )

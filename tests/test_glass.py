@@ -196,3 +196,70 @@ def test_divided_and_shared_runs_refuse_glass_by_name(tmp_path):
         solve_divided(patches, SolverConfig(accuracy=0.1), DivideConfig(subscenes=2))
     with pytest.raises(ConfigError, match="glass .* not shared"):
         run_shared(patches, SolverConfig(accuracy=0.1), 2, LocalShares(patches, SolverConfig(accuracy=0.1)))
+
+
+def write_room(folder, mtl: str) -> str:
+    """A 4 x 3 x 4 m box (faces in) with a lamp panel and a 1 x 1 m window in the wall z = 4 whose
+    material is ``mtl`` (an MTL body for material 'win'); returns the OBJ path."""
+    w = ObjWriter()
+    w.material("wall", 0.5)
+    w.material("lamp", 0.0, 50.0)
+    w.material("win", 0.0)
+    for name, axis, value, facing in (("floor", 1, 0.0, 1), ("ceiling", 1, 3.0, -1), ("wx0", 0, 0.0, 1),
+                                      ("wx1", 0, 4.0, -1), ("wz0", 2, 0.0, 1)):
+        w.begin(name, "wall")
+        lo, hi = {0: ((0.0, 0.0), (3.0, 4.0)), 1: ((0.0, 0.0), (4.0, 4.0)), 2: ((0.0, 0.0), (4.0, 3.0))}[axis]
+        w.add_rect(axis, value, lo, hi, facing)
+    w.begin("wz1", "wall")  # the wall z = 4 around its window
+    for lo, hi in (((0.0, 0.0), (4.0, 1.0)), ((0.0, 2.0), (4.0, 3.0)), ((0.0, 1.0), (1.5, 2.0)),
+                   ((2.5, 1.0), (4.0, 2.0))):
+        w.add_rect(2, 4.0, lo, hi, -1)
+    w.begin("window", "win")
+    w.add_rect(2, 4.0, (1.5, 1.0), (2.5, 2.0), -1)
+    w.begin("lamp", "lamp")
+    w.add_rect(1, 2.95, (1.5, 1.5), (2.5, 2.5), -1)
+    path = w.write(folder, "room")
+    mtl_path = folder / "room.mtl"
+    text = mtl_path.read_text()
+    head, _, rest = text.partition("newmtl win\n")
+    rest = rest.split("\nnewmtl", 1)
+    mtl_path.write_text(head + "newmtl win\n" + mtl + ("\nnewmtl" + rest[1] if len(rest) > 1 else "\n"))
+    return path
+
+
+def test_mtl_glass_is_read_as_panes_and_bad_glass_is_refused(tmp_path):
+    """MTL ``Tf`` with ``illum 4`` (and ``Ni``) makes a pane of that normal transmittance, two-sided;
+    ``d`` alone gives 1 - d; Tf on an opaque illum model is reported, not taken; a transmittance
+    outside [0, 1] or an index below 1 is refused by name."""
+    from dcrad.errors import SceneValueError
+    from dcrad.scene import load_scene
+
+    scene = load_scene(write_room(tmp_path / "a", "Kd 0 0 0\nTf 0.8 0.7 0.6\nNi 1.6\nillum 4"), up="y")
+    win = np.array([n.startswith("window") for n in scene.names])[scene.obj]
+    assert scene.tau is not None and np.allclose(scene.tau[win], [0.8, 0.7, 0.6]) and not scene.tau[~win].any()
+    assert np.allclose(scene.ior[win], 1.6) and scene.two_sided is not None and scene.two_sided[win].all()
+    patches = scene.patches(0.5)
+    assert patches.glazing is not None
+    np.testing.assert_array_equal(patches.glazing.mask, win[patches.source])  # the window's patches, no other
+    assert (patches.twin[patches.glazing.mask] >= 0).all()  # both sides of the pane are panes
+    scene = load_scene(write_room(tmp_path / "b", "Kd 0 0 0\nd 0.1\nillum 9"), up="y")
+    assert np.allclose(scene.tau[np.array([n.startswith("window") for n in scene.names])[scene.obj]], 0.9)
+    scene = load_scene(write_room(tmp_path / "c", "Kd 0 0 0\nTf 0.8 0.8 0.8\nillum 2"), up="y")
+    assert scene.tau is None and any("illum 2 is not glass" in w for w in scene.warnings)
+    for bad, what in (("Tf 1.2 0.8 0.8\nillum 4", "outside"), ("Tf 0.8 0.8 0.8\nNi 0.5\nillum 4", "refractive")):
+        with pytest.raises(SceneValueError, match=what):
+            load_scene(write_room(tmp_path / what, "Kd 0 0 0\n" + bad), up="y")
+
+
+def test_a_window_lets_a_room_s_light_out(tmp_path):
+    """The closed room with a clear window (tau_n 0.88): a share of the lamp's light escapes through it
+    (none does with the window opaque), the books close, and the run's estimate holds."""
+    from dcrad.passes import solve_to_accuracy as solve
+
+    escaped = {}
+    for name, body in (("glass", "Kd 0 0 0\nTf 0.88 0.88 0.88\nNi 1.52\nillum 4"), ("opaque", "Kd 0 0 0")):
+        _, patches, _ = prepare(write_room(tmp_path / name, body), 0.5, up="y")
+        solver = solve(patches, SolverConfig(accuracy=0.05, seed=2))
+        assert solver.ledger.closure() < 1e-9
+        escaped[name] = float(solver.ledger.escaped.sum() / solver.ledger.emitted.sum())
+    assert escaped["opaque"] == 0.0 and 0.005 < escaped["glass"] < 0.2
