@@ -641,10 +641,6 @@ def _gltf_materials(header: dict, path: str, warnings: list) -> list:
         except (TypeError, ValueError, AttributeError) as exc:
             raise SceneFormatError(f"{where}: cannot read its factors ({exc})") from None
         textured = isinstance(m.get("pbrMetallicRoughness", {}).get("baseColorTexture"), dict)
-        if "KHR_materials_transmission" in (m.get("extensions") or {}):
-            # glass from glTF is not read yet (optics.py takes MTL Tf / d with illum 4, 6, 7, 9): said, not dropped
-            warnings.append(f"{where}: KHR_materials_transmission is not read yet; the surface is opaque "
-                            f"(its base colour reflects, no light passes)")
         if base is None and textured:
             rho = np.ones(3)  # glTF's default factor, times the texture
         elif base is None:
@@ -659,6 +655,28 @@ def _gltf_materials(header: dict, path: str, warnings: list) -> list:
         )
         out.append((label, (base, emis, strength), rho, em))
     return out
+
+
+def _transmission(material: dict) -> float:
+    """``KHR_materials_transmission.transmissionFactor`` of a glTF material (0 without it)."""
+    ext = (material.get("extensions") or {}).get("KHR_materials_transmission") or {}
+    return float(ext.get("transmissionFactor", 0.0))
+
+
+def _gltf_glass(material: dict, base, where: str) -> tuple[np.ndarray, float]:
+    """(normal transmittance (3,), refractive index) of a glTF material: transmissionFactor times its
+    base colour (glTF tints what passes by it) and ``KHR_materials_ior`` (1.5, glTF's default); zeros
+    for an opaque one.  Out-of-range factors are refused by name."""
+    try:
+        t = _transmission(material)
+        ior = float(((material.get("extensions") or {}).get("KHR_materials_ior") or {}).get("ior", 1.5))
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise SceneFormatError(f"{where}: cannot read its transmission ({exc})") from None
+    if not (math.isfinite(t) and 0.0 <= t <= 1.0):
+        raise SceneValueError(f"{where}: transmissionFactor {t!r} is a transmittance outside [0, 1]")
+    if t > 0 and not (math.isfinite(ior) and ior >= 1.0):
+        raise SceneValueError(f"{where}: ior {ior!r} is not a refractive index (a finite number >= 1)")
+    return t * np.asarray(base, np.float64)[:3], ior
 
 
 def _gltf_material(header: dict, table: list, mat, path: str, warnings: list):
@@ -785,6 +803,8 @@ def _load_gltf(path: str, warnings: list, scale: float):
         raise SceneFormatError(f"cannot load glTF {path}: trimesh returned a {type(scene).__name__}, not a scene")
     parents = scene.graph.transforms.parents
     vs, fs, rhos, ems, objs = [], [], [], [], []
+    taus: list[np.ndarray] = []
+    iors: list[np.ndarray] = []
     labels: dict[str, int] = {}
     nv = 0
     for node in scene.graph.nodes_geometry:
@@ -807,8 +827,11 @@ def _load_gltf(path: str, warnings: list, scale: float):
             f = f[:, [0, 2, 1]]
         k = labels.setdefault(f"{obj}/{mname}", len(labels))
         gm = by_label.get(mname, {})
-        sides.append(np.full(len(f), bool(gm.get("doubleSided", False))))
         where = f"material '{mname}' in {path}"
+        tau, ior = _gltf_glass(gm, rho, where)
+        if tau.any():
+            rho = np.asarray(rho, np.float64) * (1.0 - _transmission(gm))  # what is not passed on is diffuse
+        sides.append(np.full(len(f), bool(gm.get("doubleSided", False)) or bool(tau.any())))
         image = _gltf_image(path, header, gm, where, images, warnings) if gm else None
         uv = getattr(geom.visual, "uv", None)
         if image is not None:
@@ -825,6 +848,8 @@ def _load_gltf(path: str, warnings: list, scale: float):
         fs.append(f + nv)
         nv += len(v)
         rhos.append(np.broadcast_to(rho, (len(f), 3)))
+        taus.append(np.broadcast_to(tau, (len(f), 3)))
+        iors.append(np.full(len(f), ior))
         ems.append(np.broadcast_to(em, (len(f), 3)))
         objs.append(np.full(len(f), k, np.int32))
     try:
@@ -838,6 +863,9 @@ def _load_gltf(path: str, warnings: list, scale: float):
     cat = lambda a, shape, dt: np.concatenate(a).astype(dt) if a else np.zeros(shape, dt)  # noqa: E731
     extras = {"two_sided": cat(sides, (0,), bool), "textured": list(dict.fromkeys(textured)), "maps": tex_maps,
               "lights": lights}
+    tau_t = cat(taus, (0, 3), np.float64)
+    if tau_t.any():
+        extras["tau"], extras["ior"] = tau_t, cat(iors, (0,), np.float64)
     return (
         cat(vs, (0, 3), np.float64), cat(fs, (0, 3), np.int64), cat(rhos, (0, 3), np.float64),
         cat(ems, (0, 3), np.float64), cat(objs, (0,), np.int32), list(labels),

@@ -263,3 +263,31 @@ def test_a_window_lets_a_room_s_light_out(tmp_path):
         assert solver.ledger.closure() < 1e-9
         escaped[name] = float(solver.ledger.escaped.sum() / solver.ledger.emitted.sum())
     assert escaped["opaque"] == 0.0 and 0.005 < escaped["glass"] < 0.2
+
+
+def test_gltf_transmission_makes_panes(tmp_path):
+    """glTF ``KHR_materials_transmission``: a pane whose normal transmittance is transmissionFactor
+    times the base colour and whose diffuse reflectance is the rest of the base colour, index from
+    ``KHR_materials_ior`` (1.5 by default), two-sided; a factor outside [0, 1] is refused by name."""
+    from test_punctual import box_gltf
+
+    from dcrad.errors import SceneValueError
+    from dcrad.scene import load_scene
+
+    def materials(factor, ior=None):
+        glass = {"name": "floor", "pbrMetallicRoughness": {"baseColorFactor": [0.9, 0.9, 0.9, 1.0]},
+                 "extensions": {"KHR_materials_transmission": {"transmissionFactor": factor}}}
+        if ior is not None:
+            glass["extensions"]["KHR_materials_ior"] = {"ior": ior}
+        return {"materials": [{"name": "surface", "pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.5, 0.5, 1]}},
+                              glass]}
+
+    scene = load_scene(box_gltf(tmp_path / "a.gltf", floor_rho=0.9, extra=materials(0.8)))
+    floor = np.array([n.startswith("floor") for n in scene.names])[scene.obj]
+    assert scene.tau is not None and np.allclose(scene.tau[floor], 0.72) and not scene.tau[~floor].any()
+    assert np.allclose(scene.rho[floor], 0.18) and np.allclose(scene.ior[floor], 1.5)
+    assert scene.two_sided is not None and scene.two_sided[floor].all()
+    scene = load_scene(box_gltf(tmp_path / "b.gltf", floor_rho=0.9, extra=materials(0.5, 1.7)))
+    assert np.allclose(scene.ior[np.array([n.startswith("floor") for n in scene.names])[scene.obj]], 1.7)
+    with pytest.raises(SceneValueError, match="transmissionFactor"):
+        load_scene(box_gltf(tmp_path / "c.gltf", floor_rho=0.9, extra=materials(1.5)))
