@@ -261,12 +261,6 @@ class NoiseTally:
         self.undone += int(undo.sum())
         return int((~undo).sum()), self.undone
 
-    def repool(self, patches) -> None:
-        """``pool_bias`` again from the B and D the table holds now, no cluster undone (a blend of
-        passes: each pass settled on its own, noisier, solution)."""
-        got = self._spread(patches)
-        self.pool_bias = 0.0 if got is None else _kept_spread(got[2], got[3], np.ones(len(got[2]), bool))
-
     def _spread(self, patches):
         """(rows, cluster of each row, S, N) of ``settle`` over the clustered patches, or None."""
         rows = np.flatnonzero(patches.cluster >= 0)

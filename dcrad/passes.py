@@ -111,7 +111,7 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         # pilot): the decision stands, and its shadow rays are not paid twice
         solver.gathered = shot
         solver.bias_cap = BIAS_SHARE * goal
-        solver._settled = True  # the clusters settle on the blend, whose noise is lower (below)
+        solver.settled = True  # the clusters settle on the blend, whose noise is lower (below)
         solver.stats.rays, solver.stats.shots, solver.stats.batches = done.rays, done.shots, done.batches
         solver.stats.wall_seconds, solver.stats.trace_seconds = done.wall_seconds, done.trace_seconds
         solver.run(on_progress=on_progress, should_stop=should_stop)
@@ -129,7 +129,7 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         # the clusters settle on the blend before it is judged (the report's estimate): on either pass
         # alone their noise hides the spread of clusters whose light varies (the ice-cream store's
         # second pass undid 21 of 6,162)
-        solver._settled = False
+        solver.settled = False
         solver.settled_target_error()
         blended = solver.estimate()
         if reason in ("accuracy", "noise_floor", "tolerance"):

@@ -219,7 +219,9 @@ class Solver:
         self._final: FinalGather | None = None
         #: what a shared run's replica does differently (``ReplicaRole``; the default: a run of its own)
         self.role = ReplicaRole()
-        self._settled = False  #: the clusters have settled (``settle``: once a run)
+        #: the clusters have settled (``settle``: once a run; a later pass of a blend sets it so that they
+        #: settle on the blend, passes.py)
+        self.settled = False
         #: rays kept for the final gather under --max-rays (``fit_budget``): the shooting stops short of them
         self.gather_reserve = 0
         self._fitted = False  #: ``fit_budget`` has run
@@ -899,8 +901,8 @@ class Solver:
         """Settle a clustered table's clusters once a run (NoiseTally.settle; each settling undoes some
         uniform clusters by chance, 5% at its margin, so not at every stop check): (clusters kept,
         undone in all)."""
-        if self.noise.pooled and not self._settled:
-            self._settled = True
+        if self.noise.pooled and not self.settled:
+            self.settled = True
             return self.noise.settle(self.patches)
         kept = len(np.unique(self.patches.cluster[self.patches.cluster >= 0]))
         return kept, self.noise.undone
