@@ -587,36 +587,27 @@ def _gltf_nodes(header: dict, path: str):
 
 
 def _gltf_camera(header: dict, scale: float, warnings: list, path: str) -> dict | None:
-    """First camera node, depth-first from the default scene's roots."""
-    nodes = header.get("nodes", [])
-    scenes = header.get("scenes", [])
-    roots = scenes[header.get("scene", 0)].get("nodes", []) if scenes else []
-    stack, seen = [(r, np.eye(4)) for r in reversed(roots)], set()
-    while stack:
-        i, parent = stack.pop()
-        if i in seen or not 0 <= i < len(nodes):
+    """First perspective camera node, depth-first from the default scene's roots (``_gltf_nodes``)."""
+    for i, node, world in _gltf_nodes(header, path):
+        if "camera" not in node:
             continue
-        seen.add(i)
-        world = parent @ _node_matrix(nodes[i])
-        if "camera" in nodes[i]:
-            cam = header.get("cameras", [])[nodes[i]["camera"]]
-            if "perspective" not in cam:
-                name = cam.get("name", nodes[i]["camera"])
-                warnings.append(f"{path}: camera '{name}' is not perspective; ignored")
-                continue
-            rot = world[:3, :3]
-            fwd, up = rot @ [0.0, 0.0, -1.0], rot @ [0.0, 1.0, 0.0]
-            fwd /= np.linalg.norm(fwd)
-            up -= fwd * (up @ fwd)
-            up /= np.linalg.norm(up)
-            eye = world[:3, 3] * scale
-            out = {"eye": eye, "target": eye + fwd, "up": up,
-                   "fov_y": float(np.degrees(float(cam["perspective"]["yfov"])))}
-            if not all(np.isfinite(x).all() for x in out.values()):
-                warnings.append(f"{path}: camera node {i} has a degenerate transform; ignored")
-                continue
-            return {k: x if k == "fov_y" else [float(c) for c in x] for k, x in out.items()}
-        stack += [(c, world) for c in reversed(nodes[i].get("children", []))]
+        cam = header.get("cameras", [])[node["camera"]]
+        if "perspective" not in cam:
+            name = cam.get("name", node["camera"])
+            warnings.append(f"{path}: camera '{name}' is not perspective; ignored")
+            continue
+        rot = world[:3, :3]
+        fwd, up = rot @ [0.0, 0.0, -1.0], rot @ [0.0, 1.0, 0.0]
+        fwd /= np.linalg.norm(fwd)
+        up -= fwd * (up @ fwd)
+        up /= np.linalg.norm(up)
+        eye = world[:3, 3] * scale
+        out = {"eye": eye, "target": eye + fwd, "up": up,
+               "fov_y": float(np.degrees(float(cam["perspective"]["yfov"])))}
+        if not all(np.isfinite(x).all() for x in out.values()):
+            warnings.append(f"{path}: camera node {i} has a degenerate transform; ignored")
+            continue
+        return {k: x if k == "fov_y" else [float(c) for c in x] for k, x in out.items()}
     return None
 
 
