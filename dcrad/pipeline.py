@@ -380,6 +380,8 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
         }
         if grid is not None:
             section["workplane"] = {k: v for k, v in grid.items() if k not in ("points", "lux")}
+            for room in section["workplane"].get("rooms", []):  # in the file's frame, like the points
+                room["centre"] = scene.to_input_frame(np.array([room["centre"]]))[0].tolist()
         sections["photometry"] = section
         lums = luminaires.report_section(patches, grid, tracer)
         if lums is not None:
