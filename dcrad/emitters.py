@@ -34,7 +34,8 @@ from .noise import half_mask
 from .sampling import DEGREE2_RULE, lattice
 from .shoot import RayBatch
 
-__all__ = ["Emitter", "PointSource", "sources_power", "check_single", "sphere_directions", "patch_irradiance"]
+__all__ = ["Emitter", "PointSource", "sources_power", "check_single", "sphere_directions", "patch_irradiance",
+           "half_lattice", "half_weights"]
 
 
 @runtime_checkable
@@ -59,16 +60,36 @@ class Emitter(Protocol):
         ...
 
 
-def sphere_directions(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """(dirs (n,3) unit, half (n,) bool): stratified uniform directions on the sphere, the first
-    ceil(n/2) and the rest from two independently shifted lattices (the two halves)."""
-    counts = np.array([n])
-    half = half_mask(counts, rng)
+def half_lattice(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(u (n,2) in [0,1), half (n,) bool): ``n`` stratified 2-D samples, the first ceil(n/2) and the
+    rest from two independently shifted lattices (the two half-solutions of noise.py)."""
+    half = half_mask(np.array([n]), rng)
     u = np.empty((n, 2))
     for which in (True, False):
         rows = np.flatnonzero(half == which)
         if len(rows):
             u[rows] = lattice(np.arange(len(rows)), np.repeat(rng.random((1, 2)), len(rows), axis=0), 2)
+    return u, half
+
+
+def half_weights(weight: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """(n,) each ray's share of a source's power from its direction's ``weight`` (n,): each half's
+    shares sum to exactly 1/2 (one half alone, a single ray: to 1), so the books close with the
+    source's ``power()``; a half whose weights are all 0 (every sample on a dark edge) shares alike."""
+    out = np.empty(len(weight))
+    split = 0 < int(half.sum()) < len(half)
+    for rows in (np.flatnonzero(half), np.flatnonzero(~half)):
+        if len(rows):
+            w = weight[rows]
+            w = w if w.sum() > 0 else np.ones_like(w)
+            out[rows] = w / w.sum() * (0.5 if split else 1.0)
+    return out
+
+
+def sphere_directions(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(dirs (n,3) unit, half (n,) bool): stratified uniform directions on the sphere, each half
+    from its own shifted lattice (``half_lattice``)."""
+    u, half = half_lattice(n, rng)
     z = 1.0 - 2.0 * u[:, 0]
     r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
     phi = 2.0 * math.pi * u[:, 1]

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .emitters import PointSource
+from .emitters import PointSource, half_weights
 from .errors import ConfigError
 from .noise import half_mask
 from .photometry import EFFICACY
@@ -438,14 +438,12 @@ class Luminaire(PointSource):
         for which in (True, False):
             rows = np.flatnonzero(half == which)
             if len(rows):
-                gamma[rows], c[rows], w = self.photometric.distribution.sample(len(rows), rng)
-                w = w if w.sum() > 0 else np.ones_like(w)  # every sample on a dark edge: the cells' mean
-                weight[rows] = w / w.sum() * (0.5 if split else 1.0)
+                gamma[rows], c[rows], weight[rows] = self.photometric.distribution.sample(len(rows), rng)
         s = np.sin(gamma)
         dirs = ((s * np.cos(c))[:, None] * self.c0 + (s * np.sin(c))[:, None] * self.c90
                 + np.cos(gamma)[:, None] * self.aim)
         dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-        power = weight[:, None] * self.power()[None, :]
+        power = half_weights(weight, half)[:, None] * self.power()[None, :]
         origins = np.broadcast_to(self.position, (n, 3)).copy()
         return RayBatch(origins=origins, dirs=dirs, power=power, shooter=np.zeros(n, np.int64),
                         half=half if split else None)

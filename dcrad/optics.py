@@ -90,6 +90,17 @@ class Glazing:
         """(m,3) tau(theta) of the panes ``prim`` (m,) at incidence cosines ``cos_i`` (m,)."""
         return pane_transmittance(cos_i, self.tau_n[prim], self.ior[prim])
 
+    def panes(self, prim: np.ndarray) -> np.ndarray:
+        """(m,) bool: which hits ``prim`` (MISS -1, or primitives past the table: none) are panes."""
+        return (prim >= 0) & (prim < len(self.mask)) & self.mask[np.clip(prim, 0, max(len(self.mask) - 1, 0))]
+
+    def crossing(self, prim: np.ndarray, ng: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(m,3) tau(theta) of the panes ``prim`` met along unit ``dirs`` (m,3), theta from their
+        geometric normals ``ng`` (m,3, any length: Embree's), either side."""
+        g = np.asarray(ng, np.float64)
+        cos = np.abs(np.einsum("ij,ij->i", dirs, g)) / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+        return self.tau(prim, cos)
+
     def take(self, rows: np.ndarray) -> "Glazing":
         return Glazing(self.mask[rows], self.tau_n[rows], self.ior[rows])
 

@@ -115,8 +115,6 @@ _BLOCK = 1 << 20  # about 10 arrays of this many float64 at the peak: 80 MB
 _FF_BLOCK = 1 << 19
 _PAIR_BLOCK = 1 << 18
 _RAY_BATCH = 1 << 18
-#: the degree-2 rule of a triangle (sampling.DEGREE2_RULE)
-_TRI_RULE = DEGREE2_RULE
 _POINT_RULE = np.array([[1.0, 0.0, 0.0]])
 
 
@@ -444,7 +442,8 @@ def direct_irradiance(patches, tracer: Tracer, corners: np.ndarray, normals: np.
     if corners.ndim == 2:
         points, weights = corners[:, None, :], np.ones(1)
     else:
-        points, weights = np.einsum("rc,kcx->krx", _TRI_RULE, corners), np.full(len(_TRI_RULE), 1 / len(_TRI_RULE))
+        rule = DEGREE2_RULE
+        points, weights = np.einsum("rc,kcx->krx", rule, corners), np.full(len(rule), 1 / len(rule))
     k, r = points.shape[:2]
     at = points.reshape(-1, 3)
     facing = np.repeat(normals, r, axis=0)
@@ -475,7 +474,7 @@ def _patch_direct(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndar
     if corners.ndim == 2:  # points: a triangle of three equal corners, one rule point
         corners, rule = np.repeat(corners[:, None, :], 3, axis=1), _POINT_RULE
     else:
-        rule = _TRI_RULE
+        rule = DEGREE2_RULE
     k = len(corners)
     out = np.zeros((k, 3))
     src = emitters if emitters is not None else _Emitters(patches)

@@ -30,11 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .emitters import PointSource
+from .emitters import PointSource, half_lattice, half_weights
 from .errors import SceneFormatError, SceneValueError
-from .noise import half_mask
 from .photometry import EFFICACY, Y_WEIGHTS
-from .sampling import lattice
 from .shoot import RayBatch
 
 __all__ = ["PunctualLight", "SpotLight", "read_gltf", "sources", "report_section", "summary_lines", "EXTENSION"]
@@ -120,13 +118,8 @@ class SpotLight(PunctualLight):
         """``n`` rays over the outer cone only (uniform in solid angle, stratified, each half from
         its own shifted lattice), each carrying its direction's share of the intensity, each half
         exactly half the power (the ledger books ``power()`` and closes to round-off)."""
-        half = half_mask(np.array([n]), rng)
+        u, half = half_lattice(n, rng)
         split = 0 < int(half.sum()) < n  # one ray (either half) carries it all
-        u = np.empty((n, 2))
-        parts = [np.flatnonzero(half == which) for which in (True, False)]
-        for rows in parts:
-            if len(rows):
-                u[rows] = lattice(np.arange(len(rows)), np.repeat(rng.random((1, 2)), len(rows), axis=0), 2)
         cos = 1.0 - u[:, 0] * (1.0 - self.cos_outer)
         sin = np.sqrt(np.maximum(1.0 - cos * cos, 0.0))
         phi = 2.0 * math.pi * u[:, 1]
@@ -136,14 +129,7 @@ class SpotLight(PunctualLight):
         b = np.cross(self.axis, t)
         dirs = ((sin * np.cos(phi))[:, None] * t + (sin * np.sin(phi))[:, None] * b
                 + cos[:, None] * self.axis[None, :])
-        weight = self.falloff(cos)
-        for rows in parts:
-            if len(rows):
-                w = weight[rows]
-                # every sample on the dark rim (a zero-width cone's lattice): the rays share alike
-                w = w if w.sum() > 0 else np.ones_like(w)
-                weight[rows] = w / w.sum() * (0.5 if split else 1.0)
-        power = weight[:, None] * self.power()[None, :]
+        power = half_weights(self.falloff(cos), half)[:, None] * self.power()[None, :]
         origins = np.broadcast_to(self.position, (n, 3)).copy()
         return RayBatch(origins=origins, dirs=dirs, power=power, shooter=np.zeros(n, np.int64),
                         half=half if split else None)

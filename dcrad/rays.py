@@ -155,15 +155,13 @@ class Tracer:
                 break
             prim, t, ng = self.intersect(o, dirs[active], normals=True)
             blocked = (prim != MISS) & (t < left)
-            pane = blocked & glazing.mask[np.maximum(prim, 0)]
+            pane = blocked & glazing.panes(prim)
             out[active[blocked & ~pane]] = 0.0
             rows = np.flatnonzero(pane)
             if not len(rows):
                 break
             d = dirs[active[rows]]
-            g = ng[rows].astype(np.float64)
-            cos = np.abs(np.einsum("ij,ij->i", d, g)) / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
-            out[active[rows]] *= glazing.tau(prim[rows], cos)
+            out[active[rows]] *= glazing.crossing(prim[rows], ng[rows], d)
             o = o[rows] + (t[rows] + step)[:, None] * d
             left = left[rows] - t[rows] - step
             active = active[rows]
@@ -198,15 +196,12 @@ class Tracer:
         base = np.zeros(m)
         cur_prim, cur_t, cur_ng = prim, t, ng
         for _ in range(MAX_PANES + 1):
-            pane = (cur_prim != MISS) & (cur_prim < len(glazing)) & glazing.mask[np.clip(cur_prim, 0, len(glazing) - 1)]
-            rows = np.flatnonzero(pane)
+            rows = np.flatnonzero(glazing.panes(cur_prim))
             if not len(rows):
                 break
             idx = active[rows]
             d = dirs[idx]
-            g = cur_ng[rows].astype(np.float64)
-            cos = np.abs(np.einsum("ij,ij->i", d, g)) / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
-            tau[idx] *= glazing.tau(cur_prim[rows], cos)
+            tau[idx] *= glazing.crossing(cur_prim[rows], cur_ng[rows], d)
             o = o[rows] + (cur_t[rows] + step)[:, None] * d
             base = base[rows] + cur_t[rows] + step
             active = idx

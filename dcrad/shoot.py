@@ -280,16 +280,14 @@ def through_panes(tracer: Tracer, batch: RayBatch, prim: np.ndarray, t: np.ndarr
     origins, dirs, power, half = batch.origins, batch.dirs, batch.power, batch.half
     ends: list[tuple] = []
     for k in range(MAX_PANES + 1):
-        pane = (prim != MISS) & (prim < len(glazing)) & glazing.mask[np.clip(prim, 0, len(glazing) - 1)]
+        pane = glazing.panes(prim)
         if k == MAX_PANES:
             pane[:] = False  # what is left stays on the last pane met
         stop = np.flatnonzero(~pane)
         rows = np.flatnonzero(pane)
         if len(rows):
-            g = ng[rows].astype(np.float64)
             d = dirs[rows]
-            cos = np.abs(np.einsum("ij,ij->i", d, g)) / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
-            tau = glazing.tau(prim[rows], cos)
+            tau = glazing.crossing(prim[rows], ng[rows], d)
             ends.append((prim[rows], t[rows], ng[rows], d, power[rows] * (1.0 - tau),
                          None if half is None else half[rows]))
         ends.append((prim[stop], t[stop], ng[stop], dirs[stop], power[stop], None if half is None else half[stop]))
