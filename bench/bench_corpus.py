@@ -51,7 +51,7 @@ def reference(model: Path, size: float, factor: float, scale: float = 1.0,
     from dcrad.passes import solve_to_accuracy
     from dcrad.pipeline import prepare
 
-    scene, patches, _ = prepare(model, size, scale=scale, up=up)
+    scene, patches, _ = prepare(model, size, scale=scale, up=up, adapt=True)  # the run's mesh
     density = factor * rays_for(patches.units, 0.02)  # ``factor`` times a default run's whole density
     patches.cluster[:] = -1  # every triangle its own unknown: the truth the clusters are measured against
     solve_to_accuracy(patches, SolverConfig(tol=1e-4, rays_per_power=density, seed=seed))

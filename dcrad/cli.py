@@ -194,7 +194,7 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
     if n <= patch_limit():
         # the unknowns, not the patches: a run's rays follow them (clusters share one B), and
         # only a run in this process settles its clusters (passes.settle); the mesh is handed on
-        patches = scene.patches(size)
+        patches = scene.patches(size, adapt=not (args.patch_size and args.patch_size > 0))
         n = patches.units
     strategy = local(n, os.cpu_count() or 1, gathers(config, n))
     workers, choice = strategy.workers, strategy.why

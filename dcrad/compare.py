@@ -185,7 +185,7 @@ def compare(path, subscenes=(1, 2, 4, 8), config: SolverConfig = SolverConfig(),
 
     runs = []
     for k in ks:
-        _, p, _ = prepare(path, size)
+        _, p, _ = prepare(path, size, adapt=not patch_size)  # the mesh of the reference
         t0 = time.perf_counter()
         if k == 1:
             s = Solver(p, config)

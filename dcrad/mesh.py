@@ -5,7 +5,8 @@ triangles, a chair ten thousand slivers.  So the element size comes from the sce
 scale, the mean free path of its rays (``light_scale``: cosine rays from random points of the
 surfaces, the mean distance to what they hit; in a closed convex room it is Cauchy's 4V/S),
 divided by ``PATHS_PER_ELEMENT``.  It is the same for a building of 400 rooms as for one room,
-and the same for a file triangulated finely or coarsely.
+and the same for a file triangulated finely or coarsely.  Where the direct light varies across an
+element (shadow edges, near lamps) ``adapt`` splits it further, as lighting programs subdivide.
 
 Meshing (``refine``) only splits: a triangle larger than the element is bisected across its
 longest edge until it is not; triangles already smaller are kept whole (their neighbours of the
@@ -20,12 +21,14 @@ import numpy as np
 
 from .patches import triangle_areas, triangle_normals
 
-__all__ = ["light_scale", "element_size", "refine", "estimate_elements", "clusters", "mesh_note", "mesh_table",
-           "PATHS_PER_ELEMENT", "SCALE_RAYS"]
+__all__ = ["light_scale", "element_size", "refine", "adapt", "estimate_elements", "clusters", "mesh_note",
+           "mesh_table", "PATHS_PER_ELEMENT", "SCALE_RAYS", "ADAPT_CONTRAST", "ADAPT_LEVELS", "ADAPT_FINEST",
+           "ADAPT_SHARE"]
 
-#: element size = mean free path / PATHS_PER_ELEMENT: the office's rooms (measured 1.6 m) give 0.27 m and
-#: 18.4k elements at 3x3 rooms (the median-edge rule gave 0.37 m and 19.9k); Cornell 0.041 m
-PATHS_PER_ELEMENT = 6.0
+#: element size = mean free path / PATHS_PER_ELEMENT (the office's rooms, 1.6 m: 0.4 m; Cornell 0.06 m).
+#: The base mesh is coarse where the light is smooth because ``adapt`` splits it where it is not: a
+#: sixth of the free path without refinement showed the direct light worse with more rays (RESULTS.md)
+PATHS_PER_ELEMENT = 4.0
 #: rays traced to measure the mean free path (its standard error is about 1/sqrt of this: 0.8%)
 SCALE_RAYS = 1 << 14
 #: a triangle is split while its area exceeds AREA_SHARE * size^2 (and its longest edge the size),
@@ -33,6 +36,20 @@ SCALE_RAYS = 1 << 14
 #: sees light vary along its length)
 AREA_SHARE = 0.6
 SLIVER_EDGES = 4.0
+#: adaptive refinement (``adapt``): an element is split where the direct light across its corners
+#: differs by more than ADAPT_CONTRAST of the light there (its corners' mean direct light plus the
+#: room's mean reflected light, which fills shadows and lifts what the eye compares against)
+ADAPT_CONTRAST = 0.3
+#: at most this many rounds of splitting (each halves an element), and never an element whose
+#: longest edge is under the element size / ADAPT_FINEST
+ADAPT_LEVELS = 3
+ADAPT_FINEST = 4.0
+#: the refinement adds at most this share of the elements' summed light (``adapt``: what the accuracy
+#: plan pays rays for), the most visible error per ray first
+ADAPT_SHARE = 0.4
+#: corners are looked at this far toward the element's centroid (a corner on a wall's foot would
+#: otherwise start its shadow rays on the wall)
+_INSET = 0.05
 
 
 def light_scale(vertices: np.ndarray, faces: np.ndarray, seed: int = 0) -> tuple[float, float]:
@@ -109,10 +126,8 @@ def refine(vertices: np.ndarray, faces: np.ndarray, size: float, max_levels: int
     if not size > 0 or len(faces) == 0:
         return vertices, faces, index
     verts = [vertices]
-    n_verts = len(vertices)
+    edges = _SplitEdges(len(vertices))
     done_f, done_i = [], []
-    keys = np.zeros(0, np.int64)  # edge keys (lo * n + hi) already split, sorted, and their midpoints
-    mids = np.zeros(0, np.int64)
     for _ in range(max_levels):
         all_v = np.concatenate(verts) if len(verts) > 1 else verts[0]
         verts = [all_v]
@@ -121,34 +136,154 @@ def refine(vertices: np.ndarray, faces: np.ndarray, size: float, max_levels: int
         done_i.append(index[~split])
         if not split.any():
             break
-        f, kk, idx = faces[split], k[split], index[split]
+        faces, index, fresh = edges.bisect(all_v, faces[split], k[split], index[split])
+        verts.append(fresh)
+    else:  # pragma: no cover - 40 halvings of an edge: 1e12 elements, refused before meshing
+        done_f.append(faces)
+        done_i.append(index)
+    faces, index = _close(np.concatenate(done_f), np.concatenate(done_i), edges.keys, edges.mids)
+    order = np.argsort(index, kind="stable")  # patches of one input triangle together, in file order
+    return np.concatenate(verts), faces[order], index[order]
+
+
+class _SplitEdges:
+    """The edges bisected so far (sorted keys, ``_key``) and the vertex index of each one's midpoint:
+    an edge split by both of its triangles, in one step or two, gets one midpoint."""
+
+    def __init__(self, n_verts: int):
+        self.n_verts = n_verts
+        self.keys = np.zeros(0, np.int64)
+        self.mids = np.zeros(0, np.int64)
+
+    def bisect(self, vertices: np.ndarray, f: np.ndarray, kk: np.ndarray, idx: np.ndarray):
+        """Split faces ``f`` across their edge ``kk`` (edge k joins corners k and k+1): (the two
+        halves of each, winding kept (2m,3), their input faces (2m,), the new midpoints (j,3), which
+        take the next vertex indices)."""
         rows = np.arange(len(f))
         a, b, c = f[rows, kk], f[rows, (kk + 1) % 3], f[rows, (kk + 2) % 3]
         key = _key(a, b)
         uniq, inv = np.unique(key, return_inverse=True)
+        keys, mids = self.keys, self.mids
         pos = np.searchsorted(keys, uniq)
         known = (pos < len(keys)) & (keys[np.minimum(pos, len(keys) - 1)] == uniq) if len(keys) else \
             np.zeros(len(uniq), bool)
         mid_of = np.empty(len(uniq), np.int64)
         mid_of[known] = mids[pos[known]]
         fresh = np.flatnonzero(~known)
-        mid_of[fresh] = n_verts + np.arange(len(fresh))
+        mid_of[fresh] = self.n_verts + np.arange(len(fresh))
         first = np.zeros(len(uniq), np.int64)
         first[inv] = np.arange(len(key))  # a triangle that splits each new edge: its corners give the midpoint
-        verts.append(0.5 * (all_v[a[first[fresh]]] + all_v[b[first[fresh]]]))
-        n_verts += len(fresh)
+        points = 0.5 * (vertices[a[first[fresh]]] + vertices[b[first[fresh]]])
+        self.n_verts += len(fresh)
         order = np.argsort(np.concatenate([keys, uniq[fresh]]), kind="stable")
-        keys = np.concatenate([keys, uniq[fresh]])[order]
-        mids = np.concatenate([mids, mid_of[fresh]])[order]
+        self.keys = np.concatenate([keys, uniq[fresh]])[order]
+        self.mids = np.concatenate([mids, mid_of[fresh]])[order]
         m = mid_of[inv]
-        faces = np.concatenate([np.stack([a, m, c], axis=1), np.stack([m, b, c], axis=1)])
-        index = np.concatenate([idx, idx])
-    else:  # pragma: no cover - 40 halvings of an edge: 1e12 elements, refused before meshing
-        done_f.append(faces)
-        done_i.append(index)
-    faces, index = _close(np.concatenate(done_f), np.concatenate(done_i), keys, mids)
-    order = np.argsort(index, kind="stable")  # patches of one input triangle together, in file order
-    return np.concatenate(verts), faces[order], index[order]
+        return (np.concatenate([np.stack([a, m, c], axis=1), np.stack([m, b, c], axis=1)]),
+                np.concatenate([idx, idx]), points)
+
+
+def adapt(vertices: np.ndarray, faces: np.ndarray, index: np.ndarray, look, size: float, fixed: np.ndarray,
+          two_sided: np.ndarray | None = None, reflect: float = 0.5):
+    """Split the elements across which the direct light varies fast (shadow edges, near lamps), as
+    lighting programs subdivide adaptively: a mesh from ``refine`` -> (vertices, faces, index as
+    ``refine`` returns them, and a dict of what was done: ``split`` elements split because of their
+    light, ``added`` elements in all, ``levels``, ``points`` looked at, ``rays`` traced).
+
+    ``look(points (k,3), normals (k,3))`` -> ((k,) the direct light's luminance there, rays traced).
+    Each element's three corners (moved ``_INSET`` toward its centroid) are looked at facing its
+    normal (and its back for the input triangles ``two_sided``); an element is split across its
+    longest edge where their spread exceeds ADAPT_CONTRAST x (their mean + the room's reflected
+    light: the mean direct light x ``reflect`` / (1 - reflect), the integrating sphere's share), up
+    to ADAPT_LEVELS rounds, each looking at the new elements only, and never below size /
+    ADAPT_FINEST; the neighbours of a split element take its midpoint (no hanging vertex).  Input
+    triangles ``fixed`` (emitters, panes, clustered triangles) are not looked at, nor split as a
+    neighbour's closure.  At most
+    ADAPT_SHARE x the elements are added, the largest spread x area first."""
+    done = {"split": 0, "added": 0, "levels": 0, "points": 0, "rays": 0}
+    vertices = np.asarray(vertices, np.float64)
+    n0 = len(faces)
+    if not size > 0 or not n0:
+        return vertices, faces, index, done
+    room = None  # the light the spreads are compared against, from the first look
+    budget = 0.0  # the noise weight the new elements may add (see below)
+    edges = _SplitEdges(len(vertices))
+    test = np.ones(n0, bool)
+    for level in range(ADAPT_LEVELS):
+        tri = vertices[faces]
+        lengths = _edges(tri)
+        test &= ~fixed[index] & (lengths.max(axis=1) > size / ADAPT_FINEST)
+        # an element is split across its longest edge and its neighbour there takes the midpoint: not
+        # when that neighbour is fixed (a lamp, a pane, a clustered triangle stays as it is)
+        held = faces[fixed[index]]
+        if len(held):
+            longest = lengths.argmax(axis=1)
+            r = np.arange(len(faces))
+            test &= ~np.isin(_key(faces[r, longest], faces[r, (longest + 1) % 3]),
+                             _key(held, np.roll(held, -1, axis=1)).ravel())
+        rows = np.flatnonzero(test)
+        if not len(rows):
+            break
+        spread, level_of = _spreads(tri[rows], look, two_sided is not None and two_sided[index[rows]], done)
+        area = triangle_areas(tri[rows])
+        if room is None:
+            direct = float((level_of * area).sum() / max(area.sum(), 1e-300))
+            room = direct * reflect / max(1.0 - reflect, 1e-3)
+            if not direct > 0:
+                break
+            # An element's shot light is noisy as its light (a patch's variance ~ B / hits, hits ~ area:
+            # the area-weighted noise sums B over the elements), so a split costs rays in proportion to
+            # the light there: the budget is ADAPT_SHARE of the elements' summed light (scaled from the
+            # ones looked at to all), not of their count; the bright ones near lamps cost the most.
+            budget = ADAPT_SHARE * float((level_of + room).sum()) * n0 / len(rows)
+        light = level_of + room
+        contrast = np.divide(spread, light, out=np.zeros_like(spread), where=light > 0)
+        over = contrast > ADAPT_CONTRAST
+        if not over.any() or budget <= 0:
+            break
+        # the most visible error (area x contrast^2, the picture's squared relative error) per ray first
+        first = np.argsort(-(area * contrast ** 2 / light)[over], kind="stable")
+        cand = rows[over][first]
+        cost = 2.0 * light[over][first]  # itself and about one neighbour split to close it
+        pick = np.sort(cand[:max(1, int(np.searchsorted(np.cumsum(cost), budget, side="right")))])
+        keep = np.ones(len(faces), bool)
+        keep[pick] = False
+        halves, idx, fresh = edges.bisect(vertices, faces[pick], lengths[pick].argmax(axis=1), index[pick])
+        vertices = np.concatenate([vertices, fresh])
+        faces, index = _close(np.concatenate([faces[keep], halves]), np.concatenate([index[keep], idx]),
+                              edges.keys, edges.mids)
+        test = np.asarray((faces >= len(vertices) - len(fresh)).any(axis=1), bool)  # new ones carry a new midpoint
+        done["split"] += len(pick)
+        done["levels"] = level + 1
+        budget -= float(cost[:len(pick)].sum())
+    done["added"] = len(faces) - n0
+    order = np.argsort(index, kind="stable")
+    return vertices, faces[order], index[order], done
+
+
+def _spreads(tri: np.ndarray, look, back: np.ndarray | bool, done: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(spread, mean) of the direct light over the inset corners of (m,3,3) triangles ``tri``, on
+    their front and, where ``back``, their back (the larger spread of the two sides)."""
+    centre = tri.mean(axis=1, keepdims=True)
+    points = (tri + _INSET * (centre - tri)).reshape(-1, 3)
+    normal = triangle_normals(tri)
+    sides = [(np.arange(len(tri)), 1.0)]
+    back = np.flatnonzero(back) if np.ndim(back) else np.zeros(0, np.int64)
+    if len(back):
+        sides.append((back, -1.0))
+    spread = np.zeros(len(tri))
+    mean = np.zeros(len(tri))
+    for rows, sign in sides:
+        at = (3 * rows[:, None] + np.arange(3)).ravel()
+        y, rays = look(points[at], np.repeat(sign * normal[rows], 3, axis=0))
+        y = np.asarray(y, np.float64).reshape(-1, 3)
+        done["points"] += len(at)
+        done["rays"] += int(rays)
+        s = y.max(axis=1) - y.min(axis=1)
+        bigger = s > spread[rows]
+        spread[rows] = np.where(bigger, s, spread[rows])
+        mean[rows] = np.where(bigger, y.mean(axis=1), mean[rows])
+    return spread, mean
 
 
 def _close(faces: np.ndarray, index: np.ndarray, keys: np.ndarray, mids: np.ndarray):
@@ -192,17 +327,25 @@ def estimate_elements(triangles: np.ndarray, size: float) -> int:
     return int(np.sum(2.0 ** levels))
 
 
-def mesh_note(size: float, how: str | None, table: list[dict]) -> str:
+def mesh_note(size: float, how: str | None, table: list[dict], adapted: dict | None = None) -> str:
     """The report's line on the mesh: the size and how it was chosen (``how`` None: --patch-size),
-    and the totals of ``mesh_table``: triangles split into how many elements, kept whole, grouped
-    into how many clusters."""
+    the totals of ``mesh_table`` (triangles split into how many elements, kept whole, grouped into
+    how many clusters) and what the adaptive refinement did (``adapted``: Patches.adapted)."""
     total = {k: sum(r[k] for r in table) for k in ("triangles", "split", "split_into", "kept_whole", "clustered",
                                                    "clusters", "elements")}
     chosen = how if how is not None else f"element size {size:.4g} m (--patch-size)"
+    if adapted is None:
+        refined = ("no adaptive refinement (--patch-size: the mesh is the size asked for)" if how is None
+                   else "no adaptive refinement (no light to follow)")
+    else:
+        refined = (f"adaptive refinement: {adapted['split']} elements split where the direct light varies across "
+                   f"them (shadow edges, near lamps) in {adapted['levels']} round(s), {adapted['added']} elements "
+                   f"added ({adapted['points']} points looked at with {adapted['rays']} shadow rays, "
+                   f"{adapted['seconds']:.2f} s; mesh.adapt)")
     return (f"mesh: {chosen}; {total['triangles']} input triangles -> {total['elements']} elements: "
             f"{total['split']} split into {total['split_into']}, {total['kept_whole']} kept whole, of which "
             f"{total['clustered']} grouped into {total['clusters']} clusters that share one B (small neighbours "
-            f"of one surface facing alike); {total['elements'] - total['clustered']} elements alone")
+            f"of one surface facing alike); {total['elements'] - total['clustered']} elements alone; {refined}")
 
 
 def _lamp_cells(triangles: np.ndarray, size: float) -> np.ndarray:
@@ -262,9 +405,11 @@ def clusters(triangles: np.ndarray, obj: np.ndarray, whole: np.ndarray, size: fl
     return out
 
 
-def mesh_table(names: list, obj: np.ndarray, source: np.ndarray, cluster: np.ndarray, n_input: int) -> list[dict]:
+def mesh_table(names: list, obj: np.ndarray, source: np.ndarray, cluster: np.ndarray, n_input: int,
+               extra: np.ndarray | None = None) -> list[dict]:
     """Per object (report.json's ``mesh.objects``): its input triangles, how many were split and
-    into how many elements, how many were kept whole and into how many clusters those were grouped.
+    into how many elements, how many were kept whole and into how many clusters those were grouped,
+    and how many elements the adaptive refinement added (``extra``: per input triangle, Patches.adapted).
     ``obj``/``source``/``cluster``: the front patches' (a cluster lies in one object)."""
     k = max(len(names), int(obj.max()) + 1 if len(obj) else 0)
     pieces = np.bincount(source, minlength=n_input)
@@ -283,7 +428,9 @@ def mesh_table(names: list, obj: np.ndarray, source: np.ndarray, cluster: np.nda
     columns = {"triangles": per_obj(seen, first), "split": split,
                "split_into": per_obj(seen & (pieces > 1), first, pieces.astype(np.float64)),
                "elements": np.bincount(obj, minlength=k), "kept_whole": per_obj(seen & (pieces == 1), first),
-               "clustered": np.bincount(obj[grouped], minlength=k), "clusters": np.bincount(c_obj, minlength=k)}
+               "clustered": np.bincount(obj[grouped], minlength=k), "clusters": np.bincount(c_obj, minlength=k),
+               "refined": per_obj(seen, first, None if extra is None else np.asarray(extra, np.float64))
+               if extra is not None else np.zeros(k, np.int64)}
     rows = [{"name": names[int(o)], **{key: int(col[o]) for key, col in columns.items()}}
             for o in np.flatnonzero(columns["elements"])]
     return sorted(rows, key=lambda r: -r["elements"])

@@ -113,6 +113,8 @@ class Patches:
     #: the panes among the patches (optics.Glazing: ideal specular transmitters, the seed's eq. 1.2);
     #: None: no glass.  One process only for now (``optics.check_single``)
     glazing: Glazing | None = None
+    #: what the mesh's adaptive refinement did (mesh.adapt's dict and its ``seconds``); None: not run
+    adapted: dict | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, np.float64)

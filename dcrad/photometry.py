@@ -80,7 +80,7 @@ __all__ = [
     "EFFICACY", "Y_WEIGHTS", "RHO_GATHER", "GATHER_RAYS", "PANE_GATHER_RAYS", "RAYS_PER_POINT", "SHADOW_RAYS",
     "PENUMBRA_RAYS",
     "EXACT_PAIRS", "TAIL_RAYS",
-    "irradiance", "direct_irradiance", "to_lux", "luminance_cd",
+    "irradiance", "direct_irradiance", "direct_look", "LOOK_RAYS", "to_lux", "luminance_cd",
     "surface_groups", "surface_stats", "workplane", "check_workplane", "stats", "false_colour", "legend_scale",
 ]
 
@@ -439,15 +439,17 @@ def _cells(x: np.ndarray, nrm: np.ndarray, rad: np.ndarray, most: int):
 
 
 def direct_irradiance(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndarray, seed: int = 0,
-                      emitters: _Emitters | None = None) -> tuple[np.ndarray, int]:
+                      emitters: _Emitters | None = None, rays: tuple[int, int, int] | None = None
+                      ) -> tuple[np.ndarray, int]:
     """(H_direct (k,3) W/m^2, shadow rays traced) at receivers facing ``normals`` (k,3): triangles
     ``corners`` (k,3,3) (H is the mean over the triangle) or points (k,3).  The emitting patches'
     light (``_patch_direct``) and the light sources' that are not patches (emitters.Emitter: exact,
-    at the rule's points)."""
-    out, rays = _patch_direct(patches, tracer, corners, normals, seed, emitters)
+    at the rule's points).  ``rays``: (RAYS_PER_POINT, SHADOW_RAYS, PENUMBRA_RAYS) for a coarser look
+    (the mesh's refinement reads where the light varies, not its value to 1%)."""
+    out, traced = _patch_direct(patches, tracer, corners, normals, seed, emitters, rays)
     sources = patches.sources
     if not sources or len(out) == 0:
-        return out, rays
+        return out, traced
     corners = np.asarray(corners, np.float64)
     normals = np.asarray(normals, np.float64)
     if corners.ndim == 2:
@@ -462,12 +464,31 @@ def direct_irradiance(patches, tracer: Tracer, corners: np.ndarray, normals: np.
     for source in sources:
         h = source.irradiance(at, facing, tracer, offset).reshape(k, r, 3)
         out += np.einsum("r,krc->kc", weights, h)
-        rays += len(at)
-    return out, rays
+        traced += len(at)
+    return out, traced
+
+
+#: the mesh's look at the direct light (mesh.adapt): shadow rays a point, at most a light, in a penumbra
+#: a light: it asks where the light varies, not its value to 1%
+LOOK_RAYS = (8, 4, 16)
+
+
+def direct_look(patches):
+    """``look(points, normals)`` -> (CIE Y of the direct irradiance there, shadow rays): what
+    mesh.adapt reads, with LOOK_RAYS, on a tracer of ``patches`` built once."""
+    tracer = Tracer.mesh(patches)
+    emitters = _Emitters(patches)
+
+    def look(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, int]:
+        h, rays = direct_irradiance(patches, tracer, points, normals, emitters=emitters, rays=LOOK_RAYS)
+        return h @ Y_WEIGHTS, rays
+
+    return look
 
 
 def _patch_direct(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndarray, seed: int = 0,
-                  emitters: _Emitters | None = None) -> tuple[np.ndarray, int]:
+                  emitters: _Emitters | None = None, budget: tuple[int, int, int] | None = None
+                  ) -> tuple[np.ndarray, int]:
     """(H_direct (k,3) W/m^2 from the emitting patches, shadow rays traced) at receivers facing
     ``normals`` (k,3): triangles ``corners`` (k,3,3) (H is the mean over the triangle: F by a
     degree-2 rule, shadow rays from stratified points of it) or points (k,3).
@@ -479,7 +500,8 @@ def _patch_direct(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndar
     PENUMBRA_RAYS / SHADOW_RAYS times the first rays in all and E F sum G V / sum G.  The weak
     lights of a receiver (past EXACT_PAIRS lights): next-event estimation, TAIL_RAYS or more.
     Receivers in chunks: memory is bounded by _BLOCK, _FF_BLOCK, _PAIR_BLOCK and _RAY_BATCH
-    whatever the counts."""
+    whatever the counts.  ``budget``: (RAYS_PER_POINT, SHADOW_RAYS, PENUMBRA_RAYS) other than these."""
+    per_point, per_light, penumbra = budget if budget is not None else (RAYS_PER_POINT, SHADOW_RAYS, PENUMBRA_RAYS)
     corners = np.asarray(corners, np.float64)
     normals = np.asarray(normals, np.float64)
     if corners.ndim == 2:  # points: a triangle of three equal corners, one rule point
@@ -523,14 +545,14 @@ def _patch_direct(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndar
         # the first rays: RAYS_PER_POINT over the receiver's lights by their share of its E F
         part = ff * src.lum[light]
         whole = np.bincount(rec, weights=part, minlength=k)[rec]
-        n0 = np.clip(np.rint(RAYS_PER_POINT * part / np.where(whole > 0, whole, 1.0)), 1, SHADOW_RAYS).astype(np.int64)
+        n0 = np.clip(np.rint(per_point * part / np.where(whole > 0, whole, 1.0)), 1, per_light).astype(np.int64)
         shift = rng.random((len(rec), 5))
         sums, traced = src.shadow(tracer, corners, normals, rec, light, shift, np.zeros(len(rec), np.int64), n0, offset)
         rays += traced
         # a penumbra (or no ray above both horizons yet): PENUMBRA_RAYS / SHADOW_RAYS times as many
         more = np.flatnonzero(((sums[2] > 0) & (sums[2] < sums[3])) | (sums[3] == 0))
         if len(more):
-            extra = n0[more] * (PENUMBRA_RAYS // SHADOW_RAYS - 1)
+            extra = n0[more] * (penumbra // per_light - 1)
             add, traced = src.shadow(tracer, corners, normals, rec[more], light[more], shift[more], n0[more], extra,
                                      offset)
             sums[:, more] += add
@@ -554,7 +576,7 @@ def _patch_direct(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndar
             cdf = run_of + (before - before[at[:-1]][run_of])
             # rays by the weak lights' share of the cell's w, at least TAIL_RAYS
             cell = c0 + used
-            n_cell = np.clip(np.rint(RAYS_PER_POINT * w_run / total[used, 0]), TAIL_RAYS, RAYS_PER_POINT)
+            n_cell = np.clip(np.rint(per_point * w_run / total[used, 0]), min(TAIL_RAYS, per_point), per_point)
             per = count[cell]
             rows = np.repeat(np.arange(len(cell)), per)
             rec = order[start[cell][rows] + np.arange(len(rows)) - np.repeat(np.cumsum(per) - per, per)]

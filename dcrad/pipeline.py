@@ -79,8 +79,12 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
 
 def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str | None = None,
             two_sided: bool = False, timings: dict | None = None, loaded: tuple | None = None,
-            workplane: float = 0.0):
+            workplane: float = 0.0, adapt: bool | None = None):
     """Load, validate and mesh a scene: returns (scene, patches, patch_size used).
+
+    ``adapt``: refine where the direct light varies (mesh.adapt); None: when the size is automatic
+    (``patch_size`` None or 0), not for an expert's --patch-size.  A second mesh of the same scene at
+    the size the first one used (``compare``, references) passes the first one's ``adapt``.
 
     ``up`` (None: detect) and ``two_sided``: see scene.load_scene.  ``timings`` (a dict)
     receives ``load_s`` (file to validated triangles) and ``mesh_s`` (triangles to patches).
@@ -100,7 +104,7 @@ def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str |
     size = patch_size if patch_size else default_patch_size(scene)
     check_patch_count(mesh.estimate_elements(scene.vertices[scene.faces[scene.valid]], size), size)
     meshed = loaded[2] if loaded is not None and len(loaded) > 2 else None
-    patches = meshed if meshed is not None else scene.patches(size)
+    patches = meshed if meshed is not None else scene.patches(size, adapt=not patch_size if adapt is None else adapt)
     photometry.check_workplane(workplane, patches)
     if timings is not None:
         timings.update(load_s=t1 - t0, mesh_s=time.perf_counter() - t1)
@@ -477,11 +481,15 @@ def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, wid
     auto = scene.element_choice if scene.element_choice is not None and scene.element_choice[0] == size else None
     p = books.patches
     front = ~p.is_back
-    table = mesh.mesh_table(p.names, p.obj[front], p.source[front], p.cluster[front], len(scene.faces))
-    books.choices.insert(0, Choice("mesh", mesh.mesh_note(size, auto[1] if auto else None, table)))
+    adapted = p.adapted
+    table = mesh.mesh_table(p.names, p.obj[front], p.source[front], p.cluster[front], len(scene.faces),
+                            None if adapted is None else adapted["extra"])
+    books.choices.insert(0, Choice("mesh", mesh.mesh_note(size, auto[1] if auto else None, table, adapted)))
     p.pool()  # clustered patches share one B (their estimate was read so: noise.py)
     sections: dict = {"mesh": {"element_size_m": size, "automatic": auto is not None, "elements": len(p),
-                               "units": p.units, "objects": table}}
+                               "units": p.units, "objects": table,
+                               "refined": None if adapted is None else
+                               {k: adapted[k] for k in ("split", "added", "levels", "points", "rays", "seconds")}}}
     outputs = {} if out is None else write_outputs(Path(out), scene, books.patches, width, height, sections,
                                                    float(settings.get("workplane_m") or 0.0), tracer=tracer,
                                                    views=views, painter=painter)

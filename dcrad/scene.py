@@ -45,6 +45,7 @@ import math
 import os
 import struct
 import tempfile
+import time
 from dataclasses import dataclass, field
 from urllib.parse import unquote
 
@@ -52,6 +53,7 @@ import numpy as np
 
 from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
+from .mesh import adapt as adapt_mesh
 from .mesh import clusters, refine
 from .objfile import inside_folder, mtllib_files, parse_obj, read_mtl
 from .optics import DEFAULT_IOR, Glazing
@@ -127,21 +129,46 @@ class Scene:
     def __len__(self) -> int:
         return len(self.faces)
 
-    def patches(self, max_edge: float | None = None) -> Patches:
+    def patches(self, max_edge: float | None = None, adapt: bool = False) -> Patches:
         """Mesh the valid triangles into patches.
 
         ``max_edge`` None or 0: one patch per valid triangle.  Otherwise every
         triangle larger than an element of that size (m) is bisected until it
-        is not (mesh.refine); smaller ones are kept whole.  ``Patches.source`` is the input
+        is not (mesh.refine); smaller ones are kept whole.  ``adapt``: then split
+        further where the direct light varies fast (mesh.adapt: shadow edges, near
+        lamps; ``Patches.adapted`` says what was done).  ``Patches.source`` is the input
         triangle index; ``obj`` and ``names`` are carried over.
         """
         if max_edge is not None and (not math.isfinite(max_edge) or max_edge < 0):
             raise ConfigError(f"invalid max_edge={max_edge!r}: must be a finite number >= 0 (0: no meshing)")
         keep = np.flatnonzero(self.valid)
         v, f, idx = refine(self.vertices, self.faces[keep], max_edge or 0.0)
+        built = self._built(keep, v, f, idx, max_edge or 0.0)
+        if not adapt or not max_edge or not (built.emission.any() or built.sources):
+            return built
+        from .photometry import Y_WEIGHTS, direct_look  # noqa: PLC0415  embreex on first use
+
+        t0 = time.perf_counter()
+        fixed = np.zeros(len(keep), bool)  # lamps, panes and clustered triangles are not split
+        fixed[np.searchsorted(keep, built.source[(built.emission.max(axis=1) > 0) | (built.cluster >= 0)])] = True
+        if built.glazing is not None:
+            fixed[np.searchsorted(keep, built.source[built.glazing.mask])] = True
+        two = self.two_sided[keep] if self.two_sided is not None else None
+        before = np.bincount(keep[idx], minlength=len(self.faces))
+        v, f, idx, done = adapt_mesh(v, f, idx, direct_look(built), max_edge, fixed, two,
+                                     float(built.mean_rho @ Y_WEIGHTS))
+        if done["added"]:
+            built = self._built(keep, v, f, idx, max_edge)
+        extra = np.bincount(keep[idx], minlength=len(self.faces)) - before  # per input triangle
+        built.adapted = {**done, "seconds": time.perf_counter() - t0, "extra": extra}
+        return built
+
+    def _built(self, keep: np.ndarray, v: np.ndarray, f: np.ndarray, idx: np.ndarray, size: float) -> Patches:
+        """The patch table of a mesh of the valid triangles ``keep`` (``idx``: the row of ``keep`` of
+        each face): materials, back sides, clusters, panes."""
         src = keep[idx]
         whole = np.bincount(idx, minlength=len(keep)) == 1
-        group = clusters(self.vertices[self.faces[keep]], self.obj[keep], whole, max_edge or 0.0,
+        group = clusters(self.vertices[self.faces[keep]], self.obj[keep], whole, size,
                          np.asarray(self.emission[keep].any(axis=1)))[idx]
         emission = self.emission[src]
         rho = self._patch_rho(v, f, src) if self.texture_maps and len(f) != len(keep) else self.rho[src]
