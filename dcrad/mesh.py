@@ -232,10 +232,12 @@ def adapt(vertices: np.ndarray, faces: np.ndarray, index: np.ndarray, look, size
             if not direct > 0:
                 break
             # An element's shot light is noisy as its light (a patch's variance ~ B / hits, hits ~ area:
-            # the area-weighted noise sums B over the elements), so a split costs rays in proportion to
-            # the light there: the budget is ADAPT_SHARE of the elements' summed light (scaled from the
-            # ones looked at to all), not of their count; the bright ones near lamps cost the most.
-            budget = ADAPT_SHARE * float((level_of + room).sum()) * n0 / len(rows)
+            # the area-weighted noise sums B over the unknowns), so a split costs rays in proportion to
+            # the light there: the budget is ADAPT_SHARE of the summed light of the elements looked at
+            # (the unknowns but for the clusters, which count once, and the lamps), not of their count;
+            # the bright ones near lamps cost the most.  (Scaled to every element, the ice-cream store's
+            # 150k clustered slivers made it 10x: 31M rays instead of 13M.)
+            budget = ADAPT_SHARE * float((level_of + room).sum())
         light = level_of + room
         contrast = np.divide(spread, light, out=np.zeros_like(spread), where=light > 0)
         over = contrast > ADAPT_CONTRAST
