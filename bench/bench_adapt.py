@@ -9,9 +9,10 @@ exact direct irradiance at --points area-sampled points of the lit reflecting su
 faces its element's front).  Printed: RMS(shown - exact) / RMS(exact), smoothed and flat, over
 all points, and in the room (points farther than an element from a lamp: not in fixtures), also
 relative to the light there (exact + the room's mean reflected light); beside them, the same count
-of elements spent uniformly (a finer automatic mesh).  No assertions.
+of elements spent uniformly (a finer automatic mesh), and the unrefined mesh at a sixth of the free
+path (the automatic mesh before refinement).  No assertions.
 
-Run: .venv/bin/python bench/bench_adapt.py [--scenes cornell,office,...] [--points 40000]
+Run: .venv/bin/python bench/bench_adapt.py [--scenes 'cornell;office;...'] [--points 40000]
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT.parent / "shared" / "models"
 sys.path.insert(0, str(ROOT))
 
-DEFAULT = ("cornell,office,office:rows=2,cols=3,seed=17," + ",".join(
-    str(MODELS / m / "scene.obj") for m in ("office2", "classroom", "office3", "icecream_store")))
+DEFAULT = ";".join(["cornell", "office", "office:rows=3,cols=2,seed=21,room=5,height=3.2"] + [
+    str(MODELS / m / "scene.obj") for m in ("office2", "classroom", "office3", "icecream_store")])
 
 
 def shown_error(patches, size: float, points: int, seed: int = 5) -> dict:
@@ -94,14 +95,15 @@ def shown_error(patches, size: float, points: int, seed: int = 5) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", default=DEFAULT)
+    ap.add_argument("--scenes", default=DEFAULT, help="';'-separated scene files or built-in specs")
     ap.add_argument("--points", type=int, default=40000)
     args = ap.parse_args()
+    from dcrad.mesh import PATHS_PER_ELEMENT
     from dcrad.pipeline import default_patch_size, resolve_scene
     from dcrad.scene import load_scene
 
     with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.scenes.split(","):
+        for spec in args.scenes.split(";"):
             path = resolve_scene(spec, Path(tmp) / spec.replace(":", "_").replace(",", "_").replace("=", ""))
             scene = load_scene(path)
             size = default_patch_size(scene)
@@ -114,6 +116,9 @@ def main() -> None:
             # the same count of elements spent uniformly: a finer automatic mesh
             same = scene.patches(size * np.sqrt(len(plain) / len(fine)))
             c = shown_error(same, size, args.points)
+            # the mesh before refinement was built: a sixth of the free path, unrefined
+            sixth = scene.patches(size * PATHS_PER_ELEMENT / 6.0)
+            d = shown_error(sixth, size, args.points)
             done = fine.adapted or {}
             name = Path(spec).parent.name if spec.endswith(".obj") else spec
             print(f"{name}: size {size:.3g} m; elements {len(plain)} -> {len(fine)} (unknowns {plain.units} -> "
@@ -122,7 +127,9 @@ def main() -> None:
                   f"smoothed {a['smooth']:.2%} -> {b['smooth']:.2%}, flat {a['flat']:.2%} -> {b['flat']:.2%}; "
                   f"the same elements spent uniformly ({len(same)}): smoothed {c['smooth']:.2%}, flat {c['flat']:.2%}; "
                   f"in the room ({b['room_share']:.0%} of points), smoothed: {a['room']:.2%} -> {b['room']:.2%} "
-                  f"(uniformly {c['room']:.2%}), relative {a['rel']:.2%} -> {b['rel']:.2%} (uniformly {c['rel']:.2%})",
+                  f"(uniformly {c['room']:.2%}), relative {a['rel']:.2%} -> {b['rel']:.2%} (uniformly {c['rel']:.2%}); "
+                  f"a sixth of the free path unrefined ({len(sixth)} elements): in the room {d['room']:.2%}, "
+                  f"relative {d['rel']:.2%}",
                   flush=True)
 
 

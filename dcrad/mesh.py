@@ -25,10 +25,11 @@ __all__ = ["light_scale", "element_size", "refine", "adapt", "estimate_elements"
            "mesh_table", "PATHS_PER_ELEMENT", "SCALE_RAYS", "ADAPT_CONTRAST", "ADAPT_LEVELS", "ADAPT_FINEST",
            "ADAPT_SHARE"]
 
-#: element size = mean free path / PATHS_PER_ELEMENT (the office's rooms, 1.6 m: 0.4 m; Cornell 0.06 m).
-#: The base mesh is coarse where the light is smooth because ``adapt`` splits it where it is not: a
-#: sixth of the free path without refinement showed the direct light worse with more rays (RESULTS.md)
-PATHS_PER_ELEMENT = 4.0
+#: element size = mean free path / PATHS_PER_ELEMENT (the office's rooms, 1.6 m: 0.32 m; Cornell 0.05 m).
+#: The base mesh is coarser where the light is smooth because ``adapt`` splits it where it is not: a
+#: sixth of the free path, unrefined, showed the direct light worse with more rays on the built-in
+#: scenes and the corpus (bench/bench_adapt.py, RESULTS.md)
+PATHS_PER_ELEMENT = 5.0
 #: rays traced to measure the mean free path (its standard error is about 1/sqrt of this: 0.8%)
 SCALE_RAYS = 1 << 14
 #: a triangle is split while its area exceeds AREA_SHARE * size^2 (and its longest edge the size),
@@ -46,7 +47,7 @@ ADAPT_LEVELS = 3
 ADAPT_FINEST = 4.0
 #: the refinement adds at most this share of the elements' summed light (``adapt``: what the accuracy
 #: plan pays rays for), the most visible error per ray first
-ADAPT_SHARE = 0.4
+ADAPT_SHARE = 0.3
 #: corners are looked at this far toward the element's centroid (a corner on a wall's foot would
 #: otherwise start its shadow rays on the wall)
 _INSET = 0.05
@@ -205,6 +206,11 @@ def adapt(vertices: np.ndarray, faces: np.ndarray, index: np.ndarray, look, size
     n0 = len(faces)
     if not size > 0 or not n0:
         return vertices, faces, index, done
+    # one vertex per position: a file's neighbours often repeat their shared corners (one object
+    # each, or OBJ groups), and a split must give its neighbour across the edge the midpoint too (a
+    # T-junction leaks light in float32: the two-sided Cornell box lost 5e-8 W on its back faces)
+    vertices, weld = np.unique(vertices, axis=0, return_inverse=True)
+    faces = weld.reshape(-1)[faces]
     room = None  # the light the spreads are compared against, from the first look
     budget = 0.0  # the noise weight the new elements may add (see below)
     edges = _SplitEdges(len(vertices))
@@ -244,7 +250,7 @@ def adapt(vertices: np.ndarray, faces: np.ndarray, index: np.ndarray, look, size
         if not over.any() or budget <= 0:
             break
         # the most visible error (area x contrast^2, the picture's squared relative error) per ray first
-        first = np.argsort(-(area * contrast ** 2 / light)[over], kind="stable")
+        first = np.argsort(-(area[over] * contrast[over] ** 2 / light[over]), kind="stable")  # light > 0 there
         cand = rows[over][first]
         cost = 2.0 * light[over][first]  # itself and about one neighbour split to close it
         pick = np.sort(cand[:max(1, int(np.searchsorted(np.cumsum(cost), budget, side="right")))])

@@ -146,7 +146,7 @@ def test_pooling_a_uniform_furnace_lowers_its_error_per_triangle(tmp_path):
     rho = 0.5
     fine = variant(furnace_box(tmp_path / "f", rho=rho), tmp_path / "fine", up="y", split=4)
     _, q, _ = prepare(fine)
-    # all but the cells next to its lamp (within an element, a quarter of the 0.67 m free path, of it)
+    # all but the cells next to its lamp (within an element, a fifth of the 0.67 m free path, of it)
     assert (q.cluster >= 0).mean() > 0.3
     p = Patches(q.vertices, q.faces, q.rho, np.ones((len(q), 3)), q.source, q.obj, q.names, cluster=q.cluster)
     clusters = len(np.unique(p.cluster[p.cluster >= 0]))

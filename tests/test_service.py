@@ -79,6 +79,7 @@ def in_process(office):
     """The in-process divided solution the service must reproduce."""
     _, p, _ = prepare(office / "office.obj")
     run, *_ = solve_divided(p, SolverConfig(tol=0.005, seed=3), DivideConfig(subscenes=2))
+    p.pool()  # what the service writes: clustered patches share one B
     return p.radiosity.copy(), run
 
 
@@ -142,6 +143,7 @@ def test_over_decomposed_job_survives_a_killed_worker(office, tmp_path):
     in-process run with 4 subscenes."""
     _, p, _ = prepare(office / "office.obj")
     run, *_ = solve_divided(p, SolverConfig(tol=0.005, seed=3), DivideConfig(subscenes=4))
+    p.pool()  # what the service writes: clustered patches share one B
     with LocalCluster(workers=2, data=tmp_path) as cluster:
         final, files, killed, placed = run_killing_at_first_barrier(
             cluster, office, "office.obj", {"tol": 0.005, "seed": 3}, {"subscenes": 4})
