@@ -31,7 +31,7 @@ bench/RESULTS.md).  A shared run keeps it and divides the work instead:
    gathers of 1/k of them each, lost the stratification's gain: on the office 3x3, 62 rays a
    patch gave 2.40% where 124 gave 1.57%), and the shared run combines the sums
    (``final.FinalGather.solution``), topping the gather up while the estimate is
-   above the target as a single run does (``solve.top_up``).
+   above the target as a single run does (``solver.gather_rounds``).
 
 Every share is a pure function of the scene, the settings, its index and its
 inputs: a share lost with its worker is run again elsewhere with the same
@@ -61,7 +61,7 @@ from .patches import Patches
 from .rays import Tracer
 from .report import RunBooks
 from .shooters import spatial_order
-from .solver import FINAL_ROUNDS, ReplicaRole, Snapshot, Solver, Stats, Stiffness, budget_cut_note, fit_round, top_up
+from .solver import ReplicaRole, Snapshot, Solver, Stats, Stiffness, budget_cut_note, fit_round, gather_rounds
 
 __all__ = ["receiver_shares", "replica_config", "direct_share", "direct_pilot", "run_replica",
            "Replica", "blend", "Shot", "gather_share", "SharedRun", "run_shared", "LocalShares", "shared_books",
@@ -408,7 +408,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
                  Snapshot(time.perf_counter() - t0, sum(r.shots for r in replicas), shot_rays, shot.ledger.residual(),
                           shot.ledger.closure(), finite(est.rms), finite(est.rms_refl))]
     snapshot_B = [emission, b_direct, patches.radiosity.copy()]
-    # the final gather of the average, split by receivers, topped up as Solver.finish does
+    # the final gather of the average, split by receivers, topped up as Solver.finish does:
     # the job's plan (the replicas' is at 1/k of the density): the gather is not split by rays
     plan = final_plan(cfg, len(patches))
     # the replicas' plan: a budget coarsens it alike in each (Solver.fit_budget)
@@ -421,13 +421,20 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     t1 = time.perf_counter()
     receivers = int(patches.rho.any(axis=1).sum())
 
-    more, budget_cut = fit_round(first + first % 2, cfg, shot_rays, time.perf_counter() - t0, receivers)
-    cut = ([Choice("budget", budget_cut_note(more, first, budget_cut, cfg, shot_rays))]
-           if budget_cut and not stopped else [])
-    if more >= 2 and stopped == "" and receivers:
+    cut: list[Choice] = []
+    budget_cut = ""
+
+    def first_cut(more: int, by: str) -> None:
+        if by and not stopped:
+            cut.append(Choice("budget", budget_cut_note(more, first, by, cfg, shot_rays)))
+
+    if stopped == "" and receivers:
         fg = FinalGather(patches, None, shot.diff, shot.direct, shot.direct_a, cfg.batch_rays)
         pos = [np.searchsorted(fg.rec, rows) for rows in parts]
-        while True:
+        est_now: list = []
+
+        def trace(more: int) -> None:
+            nonlocal gather_rays
             rounds.append(more)
             for (sum_a, sum_b, traced), at in zip(shares.gather(shot, parts, rounds), pos):
                 fg.sum_a[at], fg.sum_b[at] = sum_a, sum_b
@@ -436,21 +443,20 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
             b, d, _ = fg.solution()
             patches.radiosity, noise.diff = b, d
             noise.resync(patches)
-            est = estimate_of(patches, noise, shot)
+            est_now[:] = [estimate_of(patches, noise, shot)]
             if on_phase is not None:
-                on_phase("gather", time.perf_counter() - t0, shot_rays + gather_rays, est)
-            if est.rms_refl <= cfg.accuracy or len(rounds) >= FINAL_ROUNDS:
-                break
-            if should_stop is not None and should_stop():
-                break
-            if cfg.time_limit and time.perf_counter() - t0 >= cfg.time_limit:
-                break
-            want = top_up(sum(rounds), first, est.rms_refl, cfg.accuracy)
-            want += want % 2
-            more, by = fit_round(want, cfg, shot_rays + gather_rays, time.perf_counter() - t0, receivers)
-            budget_cut = budget_cut or by
-            if more < 2:
-                break
+                on_phase("gather", time.perf_counter() - t0, shot_rays + gather_rays, est_now[0])
+
+        # the rounds are Solver.finish's (solver.gather_rounds), each split by receivers over the shares
+        budget_cut = gather_rounds(first, cfg, receivers,
+                                   spent=lambda: (shot_rays + gather_rays, time.perf_counter() - t0), trace=trace,
+                                   error=lambda: est_now[0].rms_refl,
+                                   halted=lambda: should_stop is not None and should_stop(), on_first=first_cut).by
+        if est_now:
+            est = est_now[0]
+    else:
+        more, budget_cut = fit_round(first + first % 2, cfg, shot_rays, time.perf_counter() - t0, receivers)
+        first_cut(more, budget_cut)
     seconds["gather_s"] = time.perf_counter() - t1
     wall = time.perf_counter() - t0
     rays = shot_rays + gather_rays

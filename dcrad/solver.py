@@ -821,32 +821,22 @@ class Solver:
         return self.counted(0, traced)
 
     def finish(self, should_stop=None) -> None:
-        """The final gather and its top-up rounds in accuracy mode: while the estimate is above the
-        target, more rays per receiver for (estimate / target)^2 x FINAL_MARGIN of them in all (as if
-        the noise were all the gather's sampling), at most FINAL_ROUNDS rounds and 8x the first round's rays."""
-        cfg = self.config
-        first = self.final_rays
+        """The final gather and its top-up rounds (``gather_rounds``, the driver a shared run uses
+        too): a first round of ``final_rays`` a receiver within the limits, then in accuracy mode more
+        while the settled estimate is above the target."""
         receivers = int(self.patches.rho.any(axis=1).sum())
 
-        cut, by = fit_round(first, cfg, self.stats.rays, self.elapsed(), receivers)
-        if by:
-            self.budget_cut = by
-            self.choices.add("budget", budget_cut_note(cut, first, by, cfg, self.stats.rays))
-        self.final(cut, should_stop)
-        for _ in range(FINAL_ROUNDS - 1):
-            if not by_accuracy(cfg) or self._final is None or self._final.stopped:
-                return
-            err = self.settled_target_error()
-            if err <= cfg.accuracy:
-                return
-            want = top_up(2 * self._final.per_half, first, err, cfg.accuracy)
-            more, by = fit_round(want, cfg, self.stats.rays, self.elapsed(), receivers)
-            self.budget_cut = by or self.budget_cut
-            if more < 2:
-                return
-            if cfg.time_limit and self.elapsed() >= cfg.time_limit:
-                return
-            self.final(more, should_stop)
+        def first_cut(cut: int, by: str) -> None:
+            if by:
+                self.budget_cut = by
+                self.choices.add("budget", budget_cut_note(cut, self.final_rays, by, self.config, self.stats.rays))
+
+        rounds = gather_rounds(self.final_rays, self.config, receivers,
+                               spent=lambda: (self.stats.rays, self.elapsed()),
+                               trace=lambda rays: self.final(rays, should_stop),
+                               error=self.settled_target_error,
+                               halted=lambda: self._final is None or self._final.stopped, on_first=first_cut)
+        self.budget_cut = rounds.by or self.budget_cut
 
     # == the loop ==================================================================
     def elapsed(self) -> float:
@@ -1081,6 +1071,45 @@ def fit_round(rays: int, config: SolverConfig, used: int, elapsed: float, receiv
         if timed < got:
             got, by = timed, "time_limit"
     return got, by if got < rays else ""
+
+
+@dataclass
+class Rounds:
+    """The final gather's rounds as ``gather_rounds`` ran them: rays a receiver of each, and the limit
+    that cut one ("ray_budget", "time_limit" or "": none did)."""
+
+    traced: list[int]
+    by: str
+
+
+def gather_rounds(first: int, config: SolverConfig, receivers: int, spent, trace, error, halted,
+                  on_first=None) -> Rounds:
+    """The final gather's rounds, one driver for a run in one process (Solver.finish) and a shared
+    run (share.run_shared): a first round of ``first`` rays a receiver cut to what the limits leave
+    (fit_round; ``on_first(rays, limit)`` is told before it is traced); then, in accuracy mode, while
+    ``error()`` is above the target, a top-up round (top_up: (error / target)^2 x FINAL_MARGIN rays a
+    receiver in all, at most 8x the first), at most FINAL_ROUNDS rounds in all, none once
+    ``halted()`` (a stop was asked, or a round stopped before it reached every receiver) and none the
+    limits leave no two rays for (a passed time limit leaves none).  ``spent()`` -> (rays traced so
+    far, seconds so far); ``trace(rays)`` traces a round of that many (even) rays a receiver."""
+    rays, elapsed = spent()
+    more, by = fit_round(first + first % 2, config, rays, elapsed, receivers)
+    if on_first is not None:
+        on_first(more, by)
+    done: list[int] = []
+    while more >= 2:
+        trace(more)
+        done.append(more)
+        if len(done) >= FINAL_ROUNDS or not by_accuracy(config) or halted():
+            break
+        err = error()
+        if err <= config.accuracy:
+            break
+        want = top_up(sum(done), first, err, config.accuracy)
+        rays, elapsed = spent()
+        more, cut = fit_round(want + want % 2, config, rays, elapsed, receivers)
+        by = by or cut
+    return Rounds(done, by)
 
 
 def within_budget(rays: int, max_rays: int, used: int, receivers: int) -> int:

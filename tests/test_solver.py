@@ -452,3 +452,44 @@ def test_a_stop_in_the_direct_gather_abandons_it_within_a_run_of_cells(tmp_path,
     np.testing.assert_array_equal(p.unshot, p.emission)
     assert solver.ledger.closure() < 1e-12 and float(solver.ledger.absorbed.sum()) == 0.0
     assert len(polls) >= 2
+
+
+def test_the_final_gather_rounds_top_up_to_the_target_and_keep_the_limits():
+    """solver.gather_rounds, the one driver of a final gather's rounds (Solver.finish and the shared
+    run): on a fake run whose error after r rays a receiver is 0.02 + 0.02 sqrt(100 / r) (a floor
+    the rays do not lower), the rounds are the first and then (error / target)^2 x FINAL_MARGIN x done
+    - done more (from the definition, at most 8x the first in all), at most FINAL_ROUNDS; a run that
+    meets the target, a halted run and a tol-mode run trace one; under --max-rays the rounds stop
+    where two rays no longer fit, and say so."""
+    from dcrad.solver import FINAL_MARGIN, FINAL_ROUNDS, gather_rounds
+
+    def error(r: int) -> float:
+        return 0.02 + 0.02 * math.sqrt(100 / r)
+
+    def run(cfg, halted=lambda: False, receivers=10):
+        traced: list[int] = []
+        told: list = []
+        rounds = gather_rounds(100, cfg, receivers, spent=lambda: (1000 + 2 * receivers * sum(traced), 1.0),
+                               trace=traced.append, error=lambda: error(sum(traced)), halted=halted,
+                               on_first=lambda r, by: told.append((r, by)))
+        assert rounds.traced == traced
+        return rounds, told
+
+    rounds, told = run(SolverConfig(accuracy=0.03))
+    expect = [100]
+    while len(expect) < FINAL_ROUNDS and error(sum(expect)) > 0.03:
+        done = sum(expect)
+        more = min(int(math.ceil(done * ((error(done) / 0.03) ** 2 * FINAL_MARGIN - 1.0))), 8 * 100 - done)
+        expect.append(more + more % 2)
+    assert len(expect) == FINAL_ROUNDS and expect[1] > 100  # the case is a real top-up
+    assert rounds.traced == expect and rounds.by == "" and told == [(100, "")]
+    assert run(SolverConfig(accuracy=0.05))[0].traced == [100]  # 4% after the first: met
+    assert run(SolverConfig(accuracy=0.03), halted=lambda: True)[0].traced == [100]
+    assert run(SolverConfig(tol=0.01))[0].traced == [100]
+    # --max-rays: 1000 + 2 x 10 x r rays after r; what is left / (10 (1 + BRIGHT_SHARE)) even rays
+    # fit a round (final.FinalGather's cost of a round)
+    from dcrad.final import BRIGHT_SHARE
+
+    capped, told = run(SolverConfig(accuracy=0.03, max_rays=1000 + 2000 + 1250))
+    fit = int(1250 / (10 * (1 + BRIGHT_SHARE)))
+    assert capped.traced == [100, fit - fit % 2] and capped.by == "ray_budget" and told == [(100, "")]
