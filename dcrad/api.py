@@ -113,10 +113,10 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
     phases: dict = {}
     scene, patches, size = pipeline.prepare(
         scene_or_path if given is None else given.path, patch_size, scale, up, two_sided, timings=phases,
-        loaded=None if given is None else (given, 0.0), workplane=workplane)
+        loaded=None if given is None else (given, 0.0), workplane=workplane,
+        # the file's own lights (glTF) first, then these: the mesh is refined for them too
+        sources=lambda sc: (*sources, *(load_schedule(luminaires, sc, scale) if luminaires is not None else ())))
     timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
-    placed = load_schedule(luminaires, scene, scale) if luminaires is not None else []
-    patches.sources = (*patches.sources, *sources, *placed)  # the file's own lights (glTF) first
     books, tracer = pipeline.solve_single(patches, config, timings, on_progress, should_stop)
     folder = Path(out) if out is not None else None
     report = pipeline.finish_run(folder, scene, books, pipeline.scene_settings(scene, size, scale, two_sided,

@@ -79,12 +79,14 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
 
 def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str | None = None,
             two_sided: bool = False, timings: dict | None = None, loaded: tuple | None = None,
-            workplane: float = 0.0, adapt: bool | None = None):
+            workplane: float = 0.0, adapt: bool | None = None, sources=None):
     """Load, validate and mesh a scene: returns (scene, patches, patch_size used).
 
     ``adapt``: refine where the direct light varies (mesh.adapt); None: when the size is automatic
     (``patch_size`` None or 0), not for an expert's --patch-size.  A second mesh of the same scene at
     the size the first one used (``compare``, references) passes the first one's ``adapt``.
+    ``sources``: scene -> light sources besides the file's (luminaires), placed before meshing so
+    that the refinement follows their light too.
 
     ``up`` (None: detect) and ``two_sided``: see scene.load_scene.  ``timings`` (a dict)
     receives ``load_s`` (file to validated triangles) and ``mesh_s`` (triangles to patches).
@@ -104,7 +106,12 @@ def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str |
     size = patch_size if patch_size else default_patch_size(scene)
     check_patch_count(mesh.estimate_elements(scene.vertices[scene.faces[scene.valid]], size), size)
     meshed = loaded[2] if loaded is not None and len(loaded) > 2 else None
-    patches = meshed if meshed is not None else scene.patches(size, adapt=not patch_size if adapt is None else adapt)
+    extra = tuple(sources(scene)) if sources is not None else ()
+    if meshed is not None:
+        patches = meshed
+        patches.sources = (*patches.sources, *extra)
+    else:
+        patches = scene.patches(size, adapt=not patch_size if adapt is None else adapt, sources=extra)
     photometry.check_workplane(workplane, patches)
     if timings is not None:
         timings.update(load_s=t1 - t0, mesh_s=time.perf_counter() - t1)
@@ -588,9 +595,9 @@ def solve_to(
     t0 = time.perf_counter()
     phases: dict = {}
     scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases, loaded=loaded,
-                                   workplane=workplane)
-    if luminaires_path is not None:
-        patches.sources = (*patches.sources, *luminaires.load_schedule(luminaires_path, scene, scale))
+                                   workplane=workplane,
+                                   sources=None if luminaires_path is None else
+                                   lambda sc: luminaires.load_schedule(luminaires_path, sc, scale))
     t_load = time.perf_counter() - t0 + (loaded[1] if loaded is not None else 0.0)
 
     t0 = time.perf_counter()

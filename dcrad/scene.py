@@ -129,7 +129,7 @@ class Scene:
     def __len__(self) -> int:
         return len(self.faces)
 
-    def patches(self, max_edge: float | None = None, adapt: bool = False) -> Patches:
+    def patches(self, max_edge: float | None = None, adapt: bool = False, sources: tuple = ()) -> Patches:
         """Mesh the valid triangles into patches.
 
         ``max_edge`` None or 0: one patch per valid triangle.  Otherwise every
@@ -137,13 +137,16 @@ class Scene:
         is not (mesh.refine); smaller ones are kept whole.  ``adapt``: then split
         further where the direct light varies fast (mesh.adapt: shadow edges, near
         lamps; ``Patches.adapted`` says what was done).  ``Patches.source`` is the input
-        triangle index; ``obj`` and ``names`` are carried over.
+        triangle index; ``obj`` and ``names`` are carried over.  ``sources``: light sources
+        besides the file's (luminaires, emitters.Emitter), which the patches carry after the
+        file's own and the refinement follows too.
         """
         if max_edge is not None and (not math.isfinite(max_edge) or max_edge < 0):
             raise ConfigError(f"invalid max_edge={max_edge!r}: must be a finite number >= 0 (0: no meshing)")
         keep = np.flatnonzero(self.valid)
         v, f, idx = refine(self.vertices, self.faces[keep], max_edge or 0.0)
-        built = self._built(keep, v, f, idx, max_edge or 0.0)
+        sources = (*self.sources, *sources)
+        built = self._built(keep, v, f, idx, max_edge or 0.0, sources)
         if not adapt or not max_edge or not (built.emission.any() or built.sources):
             return built
         from .photometry import Y_WEIGHTS, direct_look  # noqa: PLC0415  embreex on first use
@@ -158,12 +161,13 @@ class Scene:
         v, f, idx, done = adapt_mesh(v, f, idx, direct_look(built), max_edge, fixed, two,
                                      float(built.mean_rho @ Y_WEIGHTS))
         if done["added"]:
-            built = self._built(keep, v, f, idx, max_edge)
+            built = self._built(keep, v, f, idx, max_edge, sources)
         extra = np.bincount(keep[idx], minlength=len(self.faces)) - before  # per input triangle
         built.adapted = {**done, "seconds": time.perf_counter() - t0, "extra": extra}
         return built
 
-    def _built(self, keep: np.ndarray, v: np.ndarray, f: np.ndarray, idx: np.ndarray, size: float) -> Patches:
+    def _built(self, keep: np.ndarray, v: np.ndarray, f: np.ndarray, idx: np.ndarray, size: float,
+               sources: tuple) -> Patches:
         """The patch table of a mesh of the valid triangles ``keep`` (``idx``: the row of ``keep`` of
         each face): materials, back sides, clusters, panes."""
         src = keep[idx]
@@ -194,7 +198,7 @@ class Scene:
         return Patches(
             vertices=v, faces=f, rho=rho, emission=emission,
             source=src, obj=self.obj[src], names=list(self.names), twin=twin, cluster=group,
-            sources=self.sources, glazing=glazing,
+            sources=sources, glazing=glazing,
         )
 
     def _patch_rho(self, v: np.ndarray, f: np.ndarray, src: np.ndarray) -> np.ndarray:

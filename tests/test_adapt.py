@@ -128,3 +128,22 @@ def test_a_room_in_full_shadow_or_black_is_left_as_meshed(tmp_path, reflect):
 
     out_v, out_f, out_i, done = adapt(v, f, idx, dark, 0.1, np.zeros(2, bool), reflect=reflect)
     assert done["split"] == 0 and len(out_f) == 2
+
+
+def test_a_point_light_s_shadow_is_refined_too(tmp_path):
+    """A room lit only by a point light (a luminaire, a glTF light: emitters.Emitter) given to
+    ``prepare``: its sharp shadow of the table is refined as an emitting surface's is, and the
+    patches carry the light."""
+    from dcrad.emitters import PointSource
+
+    path = _room_with_a_table(tmp_path)
+    text = (tmp_path / "room.mtl").read_text().replace("Ke 20 20 20", "Ke 0 0 0")
+    (tmp_path / "room.mtl").write_text(text)
+    light = PointSource([0.0, 1.2, 0.0], np.full(3, 5.0), name="bulb")
+    _, p, _ = prepare(path, up="y", sources=lambda scene: (light,))
+    assert p.sources == (light,)
+    assert p.adapted is not None and p.adapted["split"] > 0
+    floor = np.isclose(p.centroid[:, 1], -1.5) & (p.normal[:, 1] > 0.99)
+    assert len(np.unique(p.area[floor])) > 1  # the floor's elements differ: some were split
+    _, unlit, _ = prepare(path, up="y")
+    assert unlit.adapted is None  # nothing to follow: no light at all
