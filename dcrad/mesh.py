@@ -199,8 +199,9 @@ def adapt(vertices: np.ndarray, faces: np.ndarray, index: np.ndarray, look, size
     to ADAPT_LEVELS rounds, each looking at the new elements only, and never below size /
     ADAPT_FINEST; the neighbours of a split element take its midpoint (no hanging vertex).  Input
     triangles ``fixed`` (emitters, panes, clustered triangles) are not looked at, nor split as a
-    neighbour's closure.  At most
-    ADAPT_SHARE x the elements are added, the largest spread x area first."""
+    neighbour's closure.  The splits' light adds up to at most ADAPT_SHARE of the light of the
+    elements looked at (a split costs rays as the light on it), the largest area x contrast^2 /
+    light first."""
     done = {"split": 0, "added": 0, "levels": 0, "points": 0, "rays": 0}
     vertices = np.asarray(vertices, np.float64)
     n0 = len(faces)
@@ -240,9 +241,9 @@ def adapt(vertices: np.ndarray, faces: np.ndarray, index: np.ndarray, look, size
             # An element's shot light is noisy as its light (a patch's variance ~ B / hits, hits ~ area:
             # the area-weighted noise sums B over the unknowns), so a split costs rays in proportion to
             # the light there: the budget is ADAPT_SHARE of the summed light of the elements looked at
-            # (the unknowns but for the clusters, which count once, and the lamps), not of their count;
-            # the bright ones near lamps cost the most.  (Scaled to every element, the ice-cream store's
-            # 150k clustered slivers made it 10x: 31M rays instead of 13M.)
+            # (the unknowns but for the clusters, which count once, and the lamps: not every element,
+            # which a model of many clustered slivers would make many times larger), not of their
+            # count; the bright ones near lamps cost the most.
             budget = ADAPT_SHARE * float((level_of + room).sum())
         light = level_of + room
         contrast = np.divide(spread, light, out=np.zeros_like(spread), where=light > 0)
