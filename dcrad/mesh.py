@@ -23,7 +23,7 @@ from .patches import triangle_areas, triangle_normals
 
 __all__ = ["light_scale", "element_size", "refine", "adapt", "estimate_elements", "clusters", "mesh_note",
            "mesh_table", "PATHS_PER_ELEMENT", "SCALE_RAYS", "ADAPT_CONTRAST", "ADAPT_LEVELS", "ADAPT_FINEST",
-           "ADAPT_SHARE"]
+           "ADAPT_SHARE", "ADAPT_MOST"]
 
 #: element size = mean free path / PATHS_PER_ELEMENT (the office's rooms, 1.6 m: 0.32 m; Cornell 0.05 m).
 #: The base mesh is coarser where the light is smooth because ``adapt`` splits it where it is not: a
@@ -48,6 +48,9 @@ ADAPT_FINEST = 4.0
 #: the refinement adds at most this share of the elements' summed light (``adapt``: what the accuracy
 #: plan pays rays for), the most visible error per ray first
 ADAPT_SHARE = 0.3
+#: past this many elements the mesh is not refined: the look costs about 20 us a corner (the 20 x 20
+#: office's 1.1M elements: 83 s, most of its meshing), which a larger scene's coarser pictures do not pay for
+ADAPT_MOST = 400_000
 #: corners are looked at this far toward the element's centroid (a corner on a wall's foot would
 #: otherwise start its shadow rays on the wall)
 _INSET = 0.05
@@ -346,6 +349,8 @@ def mesh_note(size: float, how: str | None, table: list[dict], adapted: dict | N
     if adapted is None:
         refined = ("no adaptive refinement (--patch-size: the mesh is the size asked for)" if how is None
                    else "no adaptive refinement (no light to follow)")
+    elif adapted.get("skipped"):
+        refined = f"no adaptive refinement: {adapted['skipped']}"
     else:
         refined = (f"adaptive refinement: {adapted['split']} elements split where the direct light varies across "
                    f"them (shadow edges, near lamps) in {adapted['levels']} round(s), {adapted['added']} elements "

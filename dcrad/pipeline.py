@@ -496,7 +496,8 @@ def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, wid
     sections: dict = {"mesh": {"element_size_m": size, "automatic": auto is not None, "elements": len(p),
                                "units": p.units, "objects": table,
                                "refined": None if adapted is None else
-                               {k: adapted[k] for k in ("split", "added", "levels", "points", "rays", "seconds")}}}
+                               {k: adapted[k] for k in ("split", "added", "levels", "points", "rays", "seconds",
+                                                        "skipped") if k in adapted}}}
     outputs = {} if out is None else write_outputs(Path(out), scene, books.patches, width, height, sections,
                                                    float(settings.get("workplane_m") or 0.0), tracer=tracer,
                                                    views=views, painter=painter)

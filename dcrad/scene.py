@@ -53,8 +53,8 @@ import numpy as np
 
 from .config import TOL
 from .errors import ConfigError, SceneFormatError, SceneValueError
+from .mesh import ADAPT_MOST, clusters, refine
 from .mesh import adapt as adapt_mesh
-from .mesh import clusters, refine
 from .objfile import inside_folder, mtllib_files, parse_obj, read_mtl
 from .optics import DEFAULT_IOR, Glazing
 from .patches import Patches, triangle_areas, triangle_normals
@@ -148,6 +148,12 @@ class Scene:
         sources = (*self.sources, *sources)
         built = self._built(keep, v, f, idx, max_edge or 0.0, sources)
         if not adapt or not max_edge or not (built.emission.any() or built.sources):
+            return built
+        if len(built) > ADAPT_MOST:
+            built.adapted = {"split": 0, "added": 0, "levels": 0, "points": 0, "rays": 0, "seconds": 0.0,
+                             "extra": np.zeros(len(self.faces), np.int64),
+                             "skipped": f"{len(built)} elements, more than the {ADAPT_MOST} its look is sized for "
+                                        f"(mesh.ADAPT_MOST)"}
             return built
         from .photometry import Y_WEIGHTS, direct_look  # noqa: PLC0415  embreex on first use
 

@@ -147,3 +147,24 @@ def test_a_point_light_s_shadow_is_refined_too(tmp_path):
     assert len(np.unique(p.area[floor])) > 1  # the floor's elements differ: some were split
     _, unlit, _ = prepare(path, up="y")
     assert unlit.adapted is None  # nothing to follow: no light at all
+
+
+def test_a_mesh_past_the_looks_size_is_not_refined_and_says_so(tmp_path, monkeypatch):
+    """Past mesh.ADAPT_MOST elements the look is not paid for: the mesh is the unrefined one, and
+    report.json's mesh says why (here with the limit lowered to this small room's elements)."""
+    import json
+
+    import dcrad.scene
+    from dcrad.pipeline import solve_to
+
+    path = _room_with_a_table(tmp_path)
+    plain = load_scene(path, up="y").patches(default_patch_size(load_scene(path, up="y")))
+    monkeypatch.setattr(dcrad.scene, "ADAPT_MOST", len(plain) - 1)
+    _, p, _ = prepare(path, up="y")
+    assert p.adapted["skipped"] and p.adapted["added"] == 0
+    np.testing.assert_array_equal(p.faces, plain.faces)
+    solve_to(path, tmp_path / "out", up="y", width=32, height=24)
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["mesh"]["refined"]["skipped"].startswith(f"{len(plain)} elements, more than")
+    line = next(c["text"] for c in report["choices"] if c["code"] == "mesh")
+    assert "no adaptive refinement: " in line
