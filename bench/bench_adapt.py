@@ -38,51 +38,27 @@ DEFAULT = ";".join(["cornell", "office", "office:rows=3,cols=2,seed=21,room=5,he
 
 
 def shown_error(patches, size: float, points: int, seed: int = 5) -> dict:
-    """RMS of the smoothed and the flat direct light against the exact one at area-sampled points
-    of the reflecting, non-emitting, non-pane patches; the points of split elements apart."""
-    from dcrad.mesh import _lamp_cells
-    from dcrad.photometry import Y_WEIGHTS, direct_irradiance
-    from dcrad.rays import Tracer
-    from dcrad.render import CornerSmoother
-    from dcrad.sampling import triangle_points
+    """RMS of the smoothed and the flat direct light against the exact one (photometry.shown_direct)
+    at area-sampled points of the reflecting, non-emitting front patches that are not panes: over
+    all points, in the room, and relative to the light there."""
+    from dcrad.mesh import near_lamps
+    from dcrad.photometry import Y_WEIGHTS, shown_direct
 
-    tracer = Tracer.mesh(patches)
-    front = np.flatnonzero(patches.twin < 0) if (patches.twin < 0).all() else \
-        np.flatnonzero(np.arange(len(patches)) < patches.twin)
-    front = np.union1d(front, np.flatnonzero(patches.twin < 0))
-    lit = front[(patches.rho[front].max(axis=1) > 0) & (patches.emission[front].max(axis=1) == 0)]
+    lit = (~patches.is_back) & (patches.rho.max(axis=1) > 0) & (patches.emission.max(axis=1) == 0)
     if patches.glazing is not None:
-        lit = lit[~patches.glazing.mask[lit]]
-    tri = patches.triangles
-    elem = np.zeros(len(patches))
-    h, _ = direct_irradiance(patches, tracer, tri[lit], patches.normal[lit], seed=seed)
-    elem[lit] = h @ Y_WEIGHTS
-    corner = CornerSmoother(patches).apply(elem[:, None])[:, :, 0]
-    rng = np.random.default_rng(seed)
-    area = patches.area[lit]
-    pick = lit[rng.choice(len(lit), points, p=area / area.sum())]
-    uv = rng.random((points, 2))
-    su = np.sqrt(uv[:, 0])
-    bc = np.stack([1 - su, su * (1 - uv[:, 1]), su * uv[:, 1]], axis=1)
-    at = triangle_points(tri[pick, 0], tri[pick, 1], tri[pick, 2], uv)
-    truth_h, _ = direct_irradiance(patches, tracer, at, patches.normal[pick], seed=seed + 1)
-    truth = truth_h @ Y_WEIGHTS
-    smooth = (bc * corner[pick]).sum(axis=1)
-    flat = elem[pick]
+        lit &= ~patches.glazing.mask
+    got = shown_direct(patches, np.flatnonzero(lit), points, seed)
+    smooth, flat, truth = got["shown"], got["flat"], got["exact"]
     scale = np.sqrt(np.mean(truth ** 2))
-
-    room = float(np.mean(truth)) * float(patches.mean_rho @ Y_WEIGHTS) / (1 - float(patches.mean_rho @ Y_WEIGHTS))
-
-    # the room: leave out the fixtures, points within an element of a lamp (mesh._lamp_cells: a lamp's
-    # housing beside its emitter holds 97% of the classroom's squared error, 99% of office2's, and
-    # nobody reads it) or lit over FIXTURE x the mean (8 points inside office3's lamp shades, at 160x
-    # the mean, held 90% of its squared error)
-    lamps = _lamp_cells(patches.triangles[patches.emission.max(axis=1) > 0], size)
-    cells = np.floor(at / size).astype(np.int64)
-    both = np.concatenate([lamps, cells])
-    _, inv = np.unique(both, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    inside = ~np.isin(inv[len(lamps):], inv[:len(lamps)]) & (truth <= FIXTURE * np.mean(truth))
+    rho = float(patches.mean_rho @ Y_WEIGHTS)
+    room = float(np.mean(truth)) * rho / (1 - rho)
+    # the room: leave out the fixtures, points within an element of a lamp (a lamp's housing beside
+    # its emitter holds 97% of the classroom's squared error, 99% of office2's, and nobody reads it)
+    # or lit over FIXTURE x the mean (8 points inside office3's lamp shades, at 160x the mean, held
+    # 90% of its squared error)
+    lamps = patches.triangles[patches.emission.max(axis=1) > 0]
+    inside = ~near_lamps(np.floor(got["at"] / size).astype(np.int64), lamps, size) & \
+        (truth <= FIXTURE * np.mean(truth))
     scale_in = np.sqrt(np.mean(truth[inside] ** 2))
 
     def rms(x):

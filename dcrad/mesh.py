@@ -21,7 +21,7 @@ import numpy as np
 
 from .patches import triangle_areas, triangle_normals
 
-__all__ = ["light_scale", "element_size", "refine", "adapt", "estimate_elements", "clusters", "mesh_note",
+__all__ = ["light_scale", "element_size", "refine", "adapt", "near_lamps", "estimate_elements", "clusters", "mesh_note",
            "mesh_table", "PATHS_PER_ELEMENT", "SCALE_RAYS", "ADAPT_CONTRAST", "ADAPT_LEVELS", "ADAPT_FINEST",
            "ADAPT_SHARE", "ADAPT_MOST"]
 
@@ -381,6 +381,16 @@ def _lamp_cells(triangles: np.ndarray, size: float) -> np.ndarray:
     return np.unique((cells[:, None, :] + near[None]).reshape(-1, 3), axis=0)
 
 
+def near_lamps(cells: np.ndarray, lamps: np.ndarray, size: float) -> np.ndarray:
+    """(k,) bool: which of the element-grid ``cells`` (k,3) (floor(point / size)) lie within a cell
+    of the emitting triangles ``lamps`` (m,3,3): where the light varies fastest (``clusters`` groups
+    nothing there; bench/bench_adapt.py leaves fixtures out by it)."""
+    lit = _lamp_cells(lamps, size)
+    _, inv = np.unique(np.concatenate([lit, cells]), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    return np.isin(inv[len(lit):], inv[:len(lit)])
+
+
 def clusters(triangles: np.ndarray, obj: np.ndarray, whole: np.ndarray, size: float,
              emits: np.ndarray | None = None) -> np.ndarray:
     """(T,) i8: the cluster of each input triangle that ``refine`` kept whole, -1 for the rest.
@@ -410,11 +420,7 @@ def clusters(triangles: np.ndarray, obj: np.ndarray, whole: np.ndarray, size: fl
     shared = count[group] > 1
     if emits is not None and emits.any():
         shared &= ~emits[rows]
-        lamps = _lamp_cells(triangles[emits], size)
-        both = np.concatenate([lamps, cell])
-        _, inv = np.unique(both, axis=0, return_inverse=True)
-        inv = inv.ravel()
-        shared &= ~np.isin(inv[len(lamps):], inv[:len(lamps)])
+        shared &= ~near_lamps(cell, triangles[emits], size)
     _, out[rows[shared]] = np.unique(group[shared], return_inverse=True)
     return out
 

@@ -73,14 +73,14 @@ from .arrays import ray_runs
 from .errors import ConfigError
 from .lights import Lights, form_factors, light_polygons, triangle_lights
 from .rays import MISS, Tracer
-from .render import tonemap
+from .render import CornerSmoother, tonemap
 from .sampling import DEGREE2_RULE, cosine_hemisphere, lattice, onb, triangle_points
 
 __all__ = [
     "EFFICACY", "Y_WEIGHTS", "RHO_GATHER", "GATHER_RAYS", "PANE_GATHER_RAYS", "RAYS_PER_POINT", "SHADOW_RAYS",
     "PENUMBRA_RAYS",
     "EXACT_PAIRS", "TAIL_RAYS",
-    "irradiance", "direct_irradiance", "direct_look", "LOOK_RAYS", "to_lux", "luminance_cd",
+    "irradiance", "direct_irradiance", "direct_look", "shown_direct", "LOOK_RAYS", "to_lux", "luminance_cd",
     "surface_groups", "surface_stats", "workplane", "check_workplane", "stats", "false_colour", "legend_scale",
 ]
 
@@ -485,6 +485,31 @@ def direct_look(patches):
         return h @ Y_WEIGHTS, rays
 
     return look
+
+
+def shown_direct(patches, rows: np.ndarray, points: int, seed: int = 5) -> dict:
+    """The direct light as the pictures show it, against the exact one, at ``points`` area-sampled
+    points of the patches ``rows`` (each facing its patch's front): what mesh.adapt is measured by
+    (bench/bench_adapt.py, tests/test_adapt.py).  Each patch takes its exact mean direct light
+    (``direct_irradiance`` over the triangle), smoothed over corners as the pictures are
+    (render.CornerSmoother) and interpolated; CIE Y, W/m^2.  Returns ``shown`` (k,), ``flat`` (k,:
+    the patch's mean, unsmoothed), ``exact`` (k,) and ``at`` (k,3)."""
+    tracer = Tracer.mesh(patches)
+    rows = np.asarray(rows)
+    tri = patches.triangles
+    mean = np.zeros(len(patches))
+    h, _ = direct_irradiance(patches, tracer, tri[rows], patches.normal[rows], seed=seed)
+    mean[rows] = h @ Y_WEIGHTS
+    corner = CornerSmoother(patches).apply(mean[:, None])[:, :, 0]
+    rng = np.random.default_rng(seed)
+    area = patches.area[rows]
+    pick = rows[rng.choice(len(rows), points, p=area / area.sum())]
+    uv = rng.random((points, 2))
+    s = np.sqrt(uv[:, 0])
+    bc = np.stack([1 - s, s * (1 - uv[:, 1]), s * uv[:, 1]], axis=1)  # triangle_points' square-root map
+    at = np.einsum("kc,kcx->kx", bc, tri[pick])
+    exact = direct_irradiance(patches, tracer, at, patches.normal[pick], seed=seed + 1)[0] @ Y_WEIGHTS
+    return {"shown": (bc * corner[pick]).sum(axis=1), "flat": mean[pick], "exact": exact, "at": at}
 
 
 def _patch_direct(patches, tracer: Tracer, corners: np.ndarray, normals: np.ndarray, seed: int = 0,

@@ -8,10 +8,8 @@ import pytest
 import trimesh
 
 from dcrad.mesh import _key
-from dcrad.photometry import Y_WEIGHTS, direct_irradiance
+from dcrad.photometry import shown_direct
 from dcrad.pipeline import default_patch_size, prepare
-from dcrad.rays import Tracer
-from dcrad.render import CornerSmoother
 from dcrad.scene import load_scene
 
 
@@ -38,24 +36,10 @@ def _room_with_a_table(folder):
 
 def _shown_error(patches, where: np.ndarray, points: int = 6000, seed: int = 3) -> float:
     """RMS over area-sampled points of the patches ``where`` of the direct light a picture shows
-    (each patch's exact mean, smoothed over corners as render.CornerSmoother does, interpolated)
-    against the exact direct light at the point, over the RMS of the latter."""
-    tracer = Tracer.mesh(patches)
-    tri = patches.triangles
-    rows = np.flatnonzero(where)
-    mean = np.zeros(len(patches))
-    h, _ = direct_irradiance(patches, tracer, tri[rows], patches.normal[rows], seed=seed)
-    mean[rows] = h @ Y_WEIGHTS
-    corner = CornerSmoother(patches).apply(mean[:, None])[:, :, 0]
-    rng = np.random.default_rng(seed)
-    pick = rows[rng.choice(len(rows), points, p=patches.area[rows] / patches.area[rows].sum())]
-    r1, r2 = rng.random(points), rng.random(points)
-    s = np.sqrt(r1)
-    bc = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
-    at = np.einsum("kc,kcx->kx", bc, tri[pick])
-    exact = direct_irradiance(patches, tracer, at, patches.normal[pick], seed=seed + 1)[0] @ Y_WEIGHTS
-    shown = (bc * corner[pick]).sum(axis=1)
-    return float(np.sqrt(np.mean((shown - exact) ** 2) / np.mean(exact ** 2)))
+    (each patch's exact mean, smoothed over corners as render.CornerSmoother does, interpolated:
+    photometry.shown_direct) against the exact direct light at the point, over the RMS of the latter."""
+    got = shown_direct(patches, np.flatnonzero(where), points, seed)
+    return float(np.sqrt(np.mean((got["shown"] - got["exact"]) ** 2) / np.mean(got["exact"] ** 2)))
 
 
 def test_the_mesh_is_split_along_the_tables_shadow_and_shows_the_light_better(tmp_path):
