@@ -354,8 +354,8 @@ def mesh_note(size: float, how: str | None, table: list[dict], adapted: dict | N
     else:
         refined = (f"adaptive refinement: {adapted['split']} elements split where the direct light varies across "
                    f"them (shadow edges, near lamps) in {adapted['levels']} round(s), {adapted['added']} elements "
-                   f"added ({adapted['points']} points looked at with {adapted['rays']} shadow rays, "
-                   f"{adapted['seconds']:.2f} s; mesh.adapt)")
+                   f"added ({adapted['points']} points looked at with {adapted['rays']} shadow rays; mesh.adapt; "
+                   "its seconds are report.json's mesh.refined)")
     return (f"mesh: {chosen}; {total['triangles']} input triangles -> {total['elements']} elements: "
             f"{total['split']} split into {total['split_into']}, {total['kept_whole']} kept whole, of which "
             f"{total['clustered']} grouped into {total['clusters']} clusters that share one B (small neighbours "
