@@ -1,8 +1,8 @@
 """The real models of ../shared/models solved at defaults, as a new user runs them (issue 26).
 
 Prints, per model: input triangles, elements, element size, rays, solve and total seconds, the
-estimated error of the reflected light per element and per input triangle; with --reference, also
-the error measured per input triangle and per object (irradiance) against converged solutions of
+estimated error of the reflected light as the target holds it, per input triangle and per element;
+with --reference, also the error measured per input triangle and per object (irradiance) against converged solutions of
 the same mesh with no clusters (two other seeds, shot to a residual of 1e-4 at --ref-density times
 a default run's density, in this process: the clusters' own bias is measured too, and the references'
 noise is taken out).  No assertions.  In one process (--workers 0) unless --workers.
@@ -91,6 +91,7 @@ def main() -> None:
     ap.add_argument("--workers", default="0")
     ap.add_argument("--generated", default="", help="also a built-in scene as another tool would write it, Z-up, "
                     "in millimetres, every face split into 16 (e.g. office:rows=2,cols=5,seed=9)")
+    ap.add_argument("--accuracy", default="", help="--accuracy of the runs (default: dcrad's)")
     ap.add_argument("--reference", action="store_true", help="also measure against a converged solution")
     ap.add_argument("--ref-density", type=float, default=8.0,
                     help="the references' ray density over a default run's (each shot to a residual of 1e-4)")
@@ -106,12 +107,16 @@ def main() -> None:
                            split=2, scale=1000.0)
             todo.append((args.generated.replace(":", "-"), path, ("--scale", "0.001")))
         for name, model, flags in todo:
+            if args.accuracy:
+                flags = (*flags, "--accuracy", args.accuracy)
             rep, wall = solve(model, Path(tmp) / name, "--workers", args.workers, *flags)
             line = (f"{name:15s} {rep['scene']['input_triangles']:7d} triangles -> {rep['scene']['patches']:7d} "
                     f"elements at {rep['settings']['patch_size_m']:.3f} m; {rep['stats']['rays'] / 1e6:6.1f}M rays, "
-                    f"solve {rep['timings']['solve_s']:5.1f} s, all {wall:5.1f} s; est. {rep['error']['rms_refl']:.2%}")
-            tri = rep["error"].get("triangles_refl")
-            line += f" per element, {tri:.2%} per triangle" if tri is not None else ""
+                    f"solve {rep['timings']['solve_s']:5.1f} s, all {wall:5.1f} s; est. {rep['error']['rms_refl']:.2%} "
+                    "held")
+            for key, what in (("triangles_refl", "per triangle"), ("elements_refl", "per element")):
+                if rep["error"].get(key) is not None:
+                    line += f", {rep['error'][key]:.2%} {what}"
             if args.reference:
                 t0 = time.perf_counter()
                 st = rep["settings"]

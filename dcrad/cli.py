@@ -283,8 +283,11 @@ def _summary(report: dict, out: Path) -> None:
     err = report.get("error")
     if err:
         text = error_text(err["rms_refl"], err["noise_refl"], err["bias_refl"], report["settings"].get("accuracy", 0.0))
-        per_triangle = f", {100 * err['triangles_refl']:.2f}% per input triangle" if err.get("triangles_refl") else ""
-        print(f"dcrad: {text}{per_triangle}, {100 * (err['rms_norm'] or 0.0):.2f}% of RMS(B) "
+        reads = [f"{100 * err[key]:.2f}% {what}" for key, what in (("triangles_refl", "per input triangle"),
+                                                                   ("elements_refl", "per element (pictures)"))
+                 if err.get(key) is not None]
+        per = f" ({', '.join(reads)})" if reads else ""
+        print(f"dcrad: {text}{per}, {100 * (err['rms_norm'] or 0.0):.2f}% of RMS(B) "
               f"(estimated, {err['rms']:.3g} W/m^2)")
     from .luminaires import summary_lines
     from .punctual import summary_lines as light_lines

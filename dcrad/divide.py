@@ -870,7 +870,7 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     check_glass(patches.glazing, "divided")
     if planes is None and boxes is None:
         check_subscenes(divide.subscenes, len(patches))
-    config = resolve(config, patches.units)  # the job's ray density: from its patch count
+    config = resolve(config, patches.read_units)  # the job's ray density: from its patch count
     # balanced by light (CUT_WORK): a subscene's iterates cost in proportion to its lamps, and
     # cells of equal area differ in lamps.  Binned twins keep the area cut: by light, the cut
     # moves toward the lamps, and binned twins blur the light that crosses open space there

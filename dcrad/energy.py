@@ -26,7 +26,7 @@ from .config import TOL
 if TYPE_CHECKING:
     from .patches import Patches
 
-__all__ = ["ACCOUNTS", "MAGNITUDES", "Ledger", "escaped_light", "flipped_normals", "rms_error"]
+__all__ = ["ACCOUNTS", "MAGNITUDES", "Ledger", "escaped_light", "flipped_normals", "rms_error", "read_error"]
 
 
 ACCOUNTS = ("emitted", "absorbed", "escaped", "back_faces", "unshot", "in_flight", "imported", "exported")
@@ -151,3 +151,21 @@ def rms_error(b: np.ndarray, reference: np.ndarray, area: np.ndarray) -> float:
     if total <= 0.0:
         return 0.0
     return float(np.sqrt(np.dot(sq, area) / total))
+
+
+def read_error(patches: Patches, b: np.ndarray, reference: np.ndarray, per_triangle: bool = False) -> float:
+    """The RMS error of ``b`` against ``reference`` (both (n, 3) over ``patches``) as it is read, over
+    the RMS of the reference's reflected light read alike: per element (a cluster's patches share one
+    B), or per input triangle side (the area mean of its patches: radiosity.npz's B).  A measurement,
+    for benchmarks and tests; noise.py estimates it."""
+    reads, a = patches.reads(per_triangle), patches.area
+    w = np.bincount(reads, weights=a)
+    ok = w > 0
+
+    def mean(x: np.ndarray) -> np.ndarray:
+        return np.stack([np.bincount(reads, weights=a * x[:, c])[ok] / w[ok] for c in range(3)], axis=1)
+
+    err = mean(np.asarray(b, np.float64) - reference)
+    refl = mean(np.asarray(reference, np.float64) - patches.emission)
+    den = float((w[ok, None] * refl ** 2).sum())
+    return float(np.sqrt((w[ok, None] * err ** 2).sum() / den)) if den > 0 else 0.0

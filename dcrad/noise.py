@@ -27,6 +27,12 @@ cells of about a mean free path (``NoiseTally.layout``): unshot light lands with
 or so of the patches holding it, and by then it has been reflected at least once, so
 it is smooth within a room and absent from rooms that are dark.  The estimate is
 sqrt(noise^2 + bias^2), reported over RMS(B) and over RMS(B - E) (``Estimate``).
+
+Which B: the one the user reads.  radiosity.npz gives B per input triangle, the area mean of
+its elements, and the pictures and vertex colours show the elements.  The accuracy target holds
+the reading per input triangle, with the elements at most ``SHOWN_SLACK`` times the target
+(``held_factors``); the report gives all three.  Noise averages over the elements of a triangle
+(a wall of two triangles in 800 elements reads far less noise than each element), bias does not.
 """
 
 from __future__ import annotations
@@ -39,10 +45,15 @@ import numpy as np
 from .arrays import colsum, put_rows, rowsum, take_rows
 
 __all__ = ["Estimate", "NoiseTally", "NoiseSums", "combine", "half_mask", "split_power", "METHOD",
-           "bias_ambient", "finite"]
+           "bias_ambient", "finite", "held_factors", "SHOWN_SLACK"]
 
 METHOD = ("two independent half-solutions (noise, propagated noise included) + the unshot light laid out "
           "like the irradiance so far, smoothed over a mean free path (bias)")
+
+#: the elements (the pictures, the vertex colours) may carry at most this many times the error the
+#: target holds per input triangle: the pictures show each vertex as the mean of the four to six
+#: elements around it (render.CornerSmoother), which about halves their noise again
+SHOWN_SLACK = 2.0
 
 
 def half_mask(counts: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
@@ -126,13 +137,14 @@ class Estimate:
 
     rms: float  #: W/m^2
     rms_norm: float  #: over RMS(B), the seed's normalisation
-    rms_refl: float  #: over RMS(B - E), the reflected light (the accuracy target's)
+    rms_refl: float  #: over RMS(B - E), the reflected light, as the target holds it (module doc)
     noise_refl: float  #: the noise part, over RMS(B - E)
     bias_refl: float  #: the unshot part, over RMS(B - E)
     method: str = METHOD
-    #: rms_refl of B per input triangle (radiosity.npz's B: the mean of its patches, at most the
-    #: elements' error); None where not tracked (divided and shared runs' books)
+    #: rms_refl of B per input triangle (radiosity.npz's B: the mean of its patches) and per element
+    #: (the pictures'); None where not tracked (divided and shared runs' books)
     triangles_refl: float | None = None
+    elements_refl: float | None = None
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -189,6 +201,17 @@ def combine(sums: NoiseSums, ambient: np.ndarray, pooled: float = 0.0) -> Estima
                     rel(math.sqrt(bias_ms), rms_r))
 
 
+def held_factors(triangle: tuple[float, float, float], element: tuple[float, float, float],
+                 slack: float = SHOWN_SLACK) -> tuple[float, float, float]:
+    """The (d2, b2, r2) factors of the reading the target holds: per input triangle, its noise raised
+    where the elements would otherwise carry more than ``slack`` times it (the noise share of an
+    element read over its RMS(B - E), divided by slack^2, in the triangles' RMS(B - E)).  The bias
+    is not scaled: it is smooth, the same per element and per triangle."""
+    fd_t, fb_t, fr_t = triangle
+    fd_e, _, fr_e = element
+    return max(fd_t, fd_e * fr_t / (max(fr_e, 1e-300) * slack * slack)), fb_t, fr_t
+
+
 def finite(x: float) -> float | None:
     """x, or None when it is not finite (JSON has no inf)."""
     return float(x) if math.isfinite(x) else None
@@ -220,8 +243,11 @@ class NoiseTally:
         self._sums = NoiseSums(rho2=(patches.rho ** 2 * patches.area[:, None]).sum(axis=0),
                                area=float(patches.total_area) if n else 0.0,
                                rho1=(patches.rho * patches.area[:, None]).sum(axis=0))
-        #: (d2, b2, r2) per element over per patch, from the last ``resync``
+        #: (d2, b2, r2) of the reading the target holds (``held_factors``), per element and per input
+        #: triangle, over per patch, from the last ``resync``
         self.factors = (1.0, 1.0, 1.0)
+        self.element_factors = (1.0, 1.0, 1.0)
+        self.triangle_factors = (1.0, 1.0, 1.0)
         #: W^2/m^4 m^2: the kept clusters' spread beyond their noise (``settle``; 0 before)
         self.pool_bias = 0.0
         self.undone = 0  #: clusters ``settle`` has undone so far (it may run more than once near a stop)
@@ -235,7 +261,10 @@ class NoiseTally:
         """Read the table's clusters (``_reads``: the element each patch's B is read in, Patches.reads;
         ``pooled``: some patches share one B, so the per-element factors are not 1) and resync."""
         self._reads = patches.reads() if len(patches) else np.zeros(0, np.int64)
+        self._triangle_reads = patches.reads(per_triangle=True) if len(patches) else np.zeros(0, np.int64)
         self.pooled = bool(len(patches) and (patches.cluster >= 0).any())
+        #: some input triangle is read as the mean of several elements
+        self.split = bool(len(patches)) and len(np.unique(self._triangle_reads)) < len(np.unique(self._reads))
         self.resync(patches)
 
     def settle(self, patches, margin: float = 4.0) -> tuple[int, int]:
@@ -255,7 +284,7 @@ class NoiseTally:
             return 0, 0
         rows, c, spread, noise = got
         undo = spread > margin * noise
-        patches.cluster[rows[undo[c]]] = -1
+        patches.undo_clusters(rows[undo[c]])
         self.pool_bias = _kept_spread(spread, noise, ~undo)
         self._regroup(patches)
         self.undone += int(undo.sum())
@@ -345,7 +374,9 @@ class NoiseTally:
         s.r1 = np.array([float((a * r[:, c]).sum()) for c in range(r.shape[1])])
         s.l1, s.l2 = self.layout(patches, r)
         if self.pooled:
-            self.factors = self._shares(self._reads, patches)
+            self.element_factors = self._shares(self._reads, patches)
+        self.triangle_factors = self._shares(self._triangle_reads, patches) if self.split else self.element_factors
+        self.factors = held_factors(self.triangle_factors, self.element_factors)
 
     def layout(self, patches, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(l1, l2) (3,): sum A rho H and sum A rho^2 H^2, H the irradiance so far, (B - E) / rho, averaged
@@ -379,14 +410,17 @@ class NoiseTally:
                 _read_share(reads, patches.area, b - patches.emission, s.r2))
 
     def sums(self) -> NoiseSums:
-        """The sums of B as it is read, per element (a cluster's patches share one B, Patches.pool),
-        by the factors of the last resync (the increments between resyncs are the patches')."""
+        """The sums of B as the target holds it (``held_factors``), by the factors of the last resync
+        (the increments between resyncs are the patches')."""
         return self._scaled(self.factors)
 
-    def triangle_sums(self, patches) -> NoiseSums:
-        """The sums of B per input triangle (the area-weighted mean of its patches: radiosity.npz's
-        B); O(patches), so computed when asked (the report), not at every resync."""
-        return self._scaled(self._shares(patches.reads(per_triangle=True), patches))
+    def element_sums(self) -> NoiseSums:
+        """The sums of B per element (a cluster's patches share one B, Patches.pool): the pictures'."""
+        return self._scaled(self.element_factors)
+
+    def triangle_sums(self) -> NoiseSums:
+        """The sums of B per input triangle (the area-weighted mean of its patches: radiosity.npz's B)."""
+        return self._scaled(self.triangle_factors)
 
     def _scaled(self, factors: tuple[float, float, float]) -> NoiseSums:
         s = self._sums

@@ -6,11 +6,13 @@ array; derived geometry (area, normal, centroid) is computed once and cached.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 
+from .noise import SHOWN_SLACK
 from .optics import Glazing
 
 __all__ = ["Patches", "triangle_areas", "triangle_normals", "subdivide", "remap_twin"]
@@ -243,9 +245,24 @@ class Patches:
         return self.power(self.unshot).sum(axis=0)
 
     def reset(self) -> None:
-        """Start over: B = dB = E."""
+        """Start over: B = dB = E, and the clusters as meshed (a run's settling undoes some, on its
+        own noise: the next run on the table, a pass or a replica in this process, starts from the
+        mesh, as a worker's copy of the table does)."""
         self.radiosity = self.emission.copy()
         self.unshot = self.emission.copy()
+        self.restore_clusters()
+
+    def restore_clusters(self) -> None:
+        """The clusters as meshed again, whatever a settling undid (``undo_clusters``)."""
+        meshed = self.__dict__.get("_meshed_cluster")
+        if meshed is not None:
+            self.cluster[:] = meshed
+
+    def undo_clusters(self, rows: np.ndarray) -> None:
+        """Rows whose cluster a settling undid stand alone (``reset`` puts them back)."""
+        if "_meshed_cluster" not in self.__dict__:
+            self.__dict__["_meshed_cluster"] = self.cluster.copy()
+        self.cluster[rows] = -1
 
     def subset(self, index: np.ndarray) -> "Patches":
         """A new table with the rows ``index`` (vertices are shared, not copied)."""
@@ -274,6 +291,16 @@ class Patches:
         alone = int((reflects & (self.cluster < 0)).sum())
         pooled = self.cluster[reflects & (self.cluster >= 0)]
         return max(alone + (len(np.unique(pooled)) if len(pooled) else 0), 1)
+
+    @property
+    def read_units(self) -> int:
+        """The unknowns as the accuracy target reads them (noise.py, "Which B"): B per input triangle
+        side, the elements held within ``SHOWN_SLACK`` of it; the ray density follows these
+        (accuracy.rays_for).  A wall of two triangles meshed into 800 elements is two units where
+        its elements' noise averages, 800 / SHOWN_SLACK^2 where the elements bind.  At least 1."""
+        reflects = self.rho.any(axis=1)
+        triangles = len(np.unique(self.reads(per_triangle=True)[reflects])) if reflects.any() else 0
+        return max(triangles, math.ceil(self.units / SHOWN_SLACK ** 2), 1)
 
     def reads(self, per_triangle: bool = False) -> np.ndarray:
         """(n,) i8: the unit each patch's B is read in: its cluster, else the patch itself (an

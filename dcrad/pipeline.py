@@ -413,7 +413,7 @@ def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part,
     ``patches`` holds the assembled B.  The report's ``divided`` section is in
     ``books.divided``; the coordinator adds its service figures to it.
     """
-    config = resolve(config, patches.units)  # the settings the run used (ray density, stop rule)
+    config = resolve(config, patches.read_units)  # the settings the run used (ray density, stop rule)
     states = run.states
     last = run.snapshots[-1]
     stats = Stats(shots=last.shots, rays=last.rays, batches=sum(s.batches for s in states),

@@ -24,6 +24,7 @@ import numpy as np
 from .choices import Choices
 from .config import SolverConfig
 from .energy import Ledger, escaped_light, flipped_normals, rms_error
+from .noise import SHOWN_SLACK
 from .patches import Patches
 
 if TYPE_CHECKING:  # an annotation only: importing this module does not load the solver
@@ -69,7 +70,7 @@ class RunBooks:
         """The books of a single ``Solver`` run."""
         return cls(solver.patches, solver.config, solver.ledger, solver.stats, list(solver.snapshots),
                    solver.snapshot_B, solver.back_by_obj.copy(), Choices(solver.choices), dict(timings or {}),
-                   estimate=solver.estimate(per_triangle=True), channels=solver.channels, stiff=solver.stiff)
+                   estimate=solver.estimate(), channels=solver.channels, stiff=solver.stiff)
 
     def stiffness(self) -> dict | None:
         """The report's ``stiffness``: the measured return ratio and what it changed (None: not stiff)."""
@@ -111,7 +112,10 @@ def error_section(est) -> dict | None:
         return None
     out = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in est.as_dict().items()}
     out["note"] = ("estimate, not a measurement: rms in W/m^2, rms_norm over RMS(B), rms_refl/noise_refl/"
-                   "bias_refl over RMS(B - E); previews are rendered from this B, unfiltered")
+                   "bias_refl over RMS(B - E) of the reading the accuracy target holds (B per input triangle, "
+                   f"the elements within {SHOWN_SLACK:g}x of it), triangles_refl per input triangle "
+                   "(radiosity.npz's B), elements_refl per element (the previews and meshes, rendered from "
+                   "this B, unfiltered)")
     return out
 
 

@@ -219,8 +219,8 @@ def run_replica(patches: Patches, config: SolverConfig, tracer: Tracer, direct: 
     """Replica ``index`` of k from the merged direct light, up to where the final gather would start
     (module doc, step 2).  ``patches`` is reset first (its B and dB are the replica's afterwards)."""
     patches.reset()
-    solver = Solver(patches, replica_config(config, k, index, patches.units), tracer=tracer)
-    job_plan = final_plan(resolve(config, patches.units), len(patches))
+    solver = Solver(patches, replica_config(config, k, index, patches.read_units), tracer=tracer)
+    job_plan = final_plan(resolve(config, patches.read_units), len(patches))
     solver.role = ReplicaRole(preset_direct=direct, replicas=k, shared_noise=shared_noise(patches, direct),
                               shoot_share=1.0 / max(k, 1), defer_final=True,
                               planned_final_rays=job_plan.final_rays if job_plan is not None else 0)
@@ -276,6 +276,9 @@ def blend(patches: Patches, replicas: list[Replica]) -> tuple[Shot, NoiseTally]:
         return sum(getattr(r, name) for r in replicas) * w
 
     patches.radiosity, patches.unshot = mean("radiosity"), mean("unshot")
+    # the job's table as meshed: in this process the replicas ran on it and settled its clusters, on
+    # a worker each on its own copy (the service's blend reads the mesh's)
+    patches.restore_clusters()
     ledger = Ledger(**{a: sum(getattr(r.ledger, a) for r in replicas) * w for a in ACCOUNTS + MAGNITUDES})
     noise = NoiseTally(patches)
     noise.diff, noise.unshot = mean("diff"), mean("diff_unshot")
@@ -380,7 +383,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     elapsed s, rays so far, estimate or None)`` after each phase.  The result is left in ``patches``."""
     check_single(patches.sources, "shared")
     check_glass(patches.glazing, "shared")
-    cfg = resolve(config, patches.units)
+    cfg = resolve(config, patches.read_units)
     t0 = time.perf_counter()
     emission = patches.emission.copy()
     parts = work_shares(patches, k)  # the final gather's
@@ -486,7 +489,7 @@ def shared_books(run: SharedRun, patches: Patches, config: SolverConfig, timings
                  where: str = "in this process") -> tuple[RunBooks, dict]:
     """The books of a shared run for its report (``pipeline.finish_run``) and the report's
     ``shared`` section."""
-    cfg = resolve(config, patches.units)
+    cfg = resolve(config, patches.read_units)
     rep = run.replicas
     back = np.sum([r.back_by_obj for r in rep], axis=0) / len(rep)
     stiff = next((r.stiff for r in rep if r.stiff is not None), None)

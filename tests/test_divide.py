@@ -8,7 +8,8 @@ import pytest
 import scenes
 from dcrad.config import SolverConfig
 from dcrad.divide import DivideConfig, solve_divided
-from dcrad.energy import rms_error
+from dcrad.energy import read_error, rms_error
+from dcrad.noise import SHOWN_SLACK
 from dcrad.pipeline import prepare
 from dcrad.solver import Solver
 from scenes.open_floor import open_floor, point_to_square
@@ -275,8 +276,7 @@ def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatc
 
     path = scenes.write_builtin("office", tmp_path, seed=0)
     _, ref, _ = prepare(path, 0.27)
-    Solver(ref, SolverConfig(accuracy=0.01, seed=99)).run()
-    refl = ref.radiosity - ref.emission
+    Solver(ref, SolverConfig(accuracy=0.005, seed=99)).run()
     runs = {}
     for land in (True, False):
         if not land:
@@ -286,7 +286,10 @@ def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatc
                                 record=False)
         assert run.stopped_by == "accuracy" and run.estimate is not None and run.estimate.rms_refl <= 0.04
         assert max(run.barrier_closures) < 1e-10
-        measured = rms_error(p.radiosity, ref.radiosity, ref.area) / rms_error(refl, 0 * refl, ref.area)
+        # the reading the target holds, measured: per input triangle, the elements' error over
+        # SHOWN_SLACK where that is more (noise.held_factors)
+        measured = max(read_error(ref, p.radiosity, ref.radiosity, per_triangle=True),
+                       read_error(ref, p.radiosity, ref.radiosity) / SHOWN_SLACK)
         runs[land] = (run, measured)
     (on, on_err), (off, off_err) = runs[True], runs[False]
     assert any(g > 0 for g in on.goals) and not any(off.goals)

@@ -52,12 +52,7 @@ def office(tmp_path_factory):
 @pytest.fixture(scope="module")
 def table(office):
     _, patches, _ = prepare(office / "office.obj")
-    _FRESH_CLUSTERS[id(patches)] = patches.cluster.copy()
     return patches, Tracer(patches.triangles)
-
-
-#: the table's clusters as meshed (a run in one process undoes some: ``reference`` does), per table
-_FRESH_CLUSTERS: dict = {}
 
 
 @pytest.fixture(scope="module")
@@ -163,8 +158,7 @@ def submit(address, folder, solver: dict, divide: dict | None = None):
 
 def in_process(table, k: int, seed: int):
     patches, tracer = table
-    patches.reset()
-    patches.cluster[:] = _FRESH_CLUSTERS[id(patches)]  # as the service meshes it
+    patches.reset()  # B = E and the clusters as meshed, as the service meshes it
     cfg = SolverConfig(accuracy=ACCURACY, seed=seed)
     run = run_shared(patches, cfg, k, LocalShares(patches, cfg, tracer))
     patches.pool()  # what the service writes: clustered patches share one B
