@@ -32,11 +32,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dcrad.config import SolverConfig  # noqa: E402
-from dcrad.energy import rms_error  # noqa: E402
-from dcrad.passes import solve_to_accuracy  # noqa: E402
 from dcrad.pipeline import prepare, resolve_scene  # noqa: E402
-from dcrad.rays import Tracer  # noqa: E402
-from dcrad.solver import Solver  # noqa: E402
+from dcrad.solving.energy import rms_error  # noqa: E402
+from dcrad.solving.passes import solve_to_accuracy  # noqa: E402
+from dcrad.solving.solver import Solver  # noqa: E402
+from dcrad.transport.rays import Tracer  # noqa: E402
 
 
 def rms(x: np.ndarray, area: np.ndarray) -> float:

@@ -41,8 +41,8 @@ def shown_error(patches, size: float, points: int, seed: int = 5) -> dict:
     """RMS of the smoothed and the flat direct light against the exact one (photometry.shown_direct)
     at area-sampled points of the reflecting, non-emitting front patches that are not panes: over
     all points, in the room, and relative to the light there."""
-    from dcrad.mesh import near_lamps
-    from dcrad.photometry import Y_WEIGHTS, shown_direct
+    from dcrad.meshing.mesh import near_lamps
+    from dcrad.outputs.photometry import Y_WEIGHTS, shown_direct
 
     lit = (~patches.is_back) & (patches.rho.max(axis=1) > 0) & (patches.emission.max(axis=1) == 0)
     if patches.glazing is not None:
@@ -79,9 +79,9 @@ def main() -> None:
     ap.add_argument("--scenes", default=DEFAULT, help="';'-separated scene files or built-in specs")
     ap.add_argument("--points", type=int, default=40000)
     args = ap.parse_args()
-    from dcrad.mesh import PATHS_PER_ELEMENT
+    from dcrad.io.scene import load_scene
+    from dcrad.meshing.mesh import PATHS_PER_ELEMENT
     from dcrad.pipeline import default_patch_size, resolve_scene
-    from dcrad.scene import load_scene
 
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.scenes.split(";"):

@@ -21,8 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dcrad.config import SolverConfig  # noqa: E402
-from dcrad.passes import solve_to_accuracy  # noqa: E402
 from dcrad.pipeline import prepare, resolve_scene  # noqa: E402
+from dcrad.solving.passes import solve_to_accuracy  # noqa: E402
 
 
 def one(spec: str, tmp: Path) -> str:

@@ -28,7 +28,7 @@ import numpy as np
 import scenes
 from coordinator.store import CheckpointWriter, ChunkFile, JobStore, cell_file
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, build_subscenes, checkpoint_arrays, run_divided
+from dcrad.division.divide import DivideConfig, build_subscenes, checkpoint_arrays, run_divided
 from dcrad.pipeline import prepare
 from dcrad.wire import arrays_to_chunks
 

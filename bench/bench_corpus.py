@@ -45,11 +45,11 @@ def reference(model: Path, size: float, factor: float, scale: float = 1.0,
     the run is, and against one the runs' errors read 0.7x to 0.5x of the truth (office2: 1.01%
     against an --accuracy 0.006 reference, 1.39% against this one).  Its noise is measured from two
     seeds (``measured``)."""
-    from dcrad.accuracy import rays_for
     from dcrad.config import SolverConfig
-    from dcrad.export import input_triangle_radiosity
-    from dcrad.passes import solve_to_accuracy
+    from dcrad.io.export import input_triangle_radiosity
     from dcrad.pipeline import prepare
+    from dcrad.solving.accuracy import rays_for
+    from dcrad.solving.passes import solve_to_accuracy
 
     scene, patches, _ = prepare(model, size, scale=scale, up=up, adapt=True)  # the run's mesh
     density = factor * rays_for(patches.units, 0.02)  # ``factor`` times a default run's whole density
@@ -62,7 +62,7 @@ def measured(run: Path, refs: list[np.ndarray], scene, patches) -> tuple[float, 
     """(RMS error of B per input triangle over RMS(B* - E) with the references' own noise taken out,
     that noise, area-weighted RMS relative error of the objects' mean irradiance) of ``run`` against
     the mean B* of two references of independent seeds."""
-    from dcrad.patches import triangle_areas
+    from dcrad.meshing.patches import triangle_areas
 
     ref_b = (refs[0] + refs[1]) / 2
     a = np.load(run / "radiosity.npz")

@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dcrad import direct, pipeline
-from dcrad.rays import Tracer
-from dcrad.shoot import ray_offset
+from dcrad import pipeline
+from dcrad.transport import direct
+from dcrad.transport.rays import Tracer
+from dcrad.transport.shoot import ray_offset
 
 
 def setup(spec: str):

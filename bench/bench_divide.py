@@ -22,10 +22,10 @@ import numpy as np
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, solve_divided
-from dcrad.energy import rms_error
+from dcrad.division.divide import DivideConfig, solve_divided
 from dcrad.pipeline import prepare
-from dcrad.solver import Solver
+from dcrad.solving.energy import rms_error
+from dcrad.solving.solver import Solver
 
 
 def first_below(xs, errs, target):

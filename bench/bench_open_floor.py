@@ -16,9 +16,9 @@ import sys
 import numpy as np
 
 from dcrad.config import DivideConfig, SolverConfig
-from dcrad.divide import solve_divided
-from dcrad.energy import rms_error
-from dcrad.solver import Solver
+from dcrad.division.divide import solve_divided
+from dcrad.solving.energy import rms_error
+from dcrad.solving.solver import Solver
 from scenes.open_floor import open_floor, point_to_square
 
 

@@ -16,9 +16,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import scenes  # noqa: E402
 from dcrad.config import SolverConfig  # noqa: E402
+from dcrad.io.texture import uv_means  # noqa: E402
 from dcrad.pipeline import prepare, write_outputs  # noqa: E402
-from dcrad.solver import Solver  # noqa: E402
-from dcrad.texture import uv_means  # noqa: E402
+from dcrad.solving.solver import Solver  # noqa: E402
 from scenes.variants import variant  # noqa: E402
 
 

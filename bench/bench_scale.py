@@ -72,12 +72,12 @@ def table_mb(p) -> float:
 def one(rooms: int, patch_size: float, max_rays: int, outputs: bool) -> dict:
     import numpy as np
 
-    import dcrad.solver as solve_mod
+    import dcrad.solving.solver as solve_mod
     from dcrad.config import SolverConfig
+    from dcrad.io.scene import load_scene
     from dcrad.pipeline import resolve_scene, write_outputs
-    from dcrad.rays import Tracer
-    from dcrad.scene import load_scene
-    from dcrad.shoot import patch_rays
+    from dcrad.transport.rays import Tracer
+    from dcrad.transport.shoot import patch_rays
 
     work = Path(tempfile.mkdtemp(prefix="bench_scale_"))
     row: dict = {"rooms": f"{rooms}x{rooms}"}

@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-import dcrad.divide
+import dcrad.division.divide
 import scenes
 from dcrad.config import DivideConfig, SolverConfig
-from dcrad.divide import (
+from dcrad.division.divide import (
     SequentialExecutor,
     checkpoint_arrays,
     expected_work,
@@ -45,7 +45,7 @@ from dcrad.divide import (
     subscene_specs,
 )
 from dcrad.pipeline import prepare
-from dcrad.solver import Solver
+from dcrad.solving.solver import Solver
 
 
 def on_machines(per: np.ndarray, m: int, pending: np.ndarray, moving: np.ndarray, static: np.ndarray,
@@ -144,12 +144,12 @@ def main(argv=None) -> int:
     ap.add_argument("--gbps", type=float, default=1.0, help="link bandwidth, Gbit/s")
     ap.add_argument("--latency-ms", type=float, default=0.5, help="one round trip, ms")
     ap.add_argument("--machines", default="2,16", help="also put k subscenes on m machines, for each m < k")
-    ap.add_argument("--cut", choices=("light", "area"), default=dcrad.divide.CUT_WORK,
+    ap.add_argument("--cut", choices=("light", "area"), default=dcrad.division.divide.CUT_WORK,
                     help="what the automatic cut balances (divide.CUT_WORK; area: as before issue 14's fifth session)")
     ap.add_argument("--service", action="store_true", help="also measure dcrad solve --workers 0 / 2")
     args = ap.parse_args(argv)
     machines = [int(x) for x in args.machines.split(",") if x]
-    dcrad.divide.CUT_WORK = args.cut
+    dcrad.division.divide.CUT_WORK = args.cut
 
     folder = Path(tempfile.mkdtemp())
     path = scenes.write_builtin("office", folder, rows=args.rows, cols=args.cols)

@@ -19,7 +19,7 @@ import scenes
 from coordinator import client
 from coordinator.embedded import LocalCluster
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, solve_divided
+from dcrad.division.divide import DivideConfig, solve_divided
 from dcrad.pipeline import prepare
 
 

@@ -26,9 +26,9 @@ import numpy as np
 import scenes
 from dcrad.config import SolverConfig
 from dcrad.pipeline import prepare
-from dcrad.rays import Tracer
-from dcrad.shoot import patch_rays
-from dcrad.solver import Solver
+from dcrad.solving.solver import Solver
+from dcrad.transport.rays import Tracer
+from dcrad.transport.shoot import patch_rays
 
 
 def raw_embree_rate(patches, tracer, rays=1_000_000, repeats=3) -> float:

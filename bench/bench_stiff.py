@@ -30,10 +30,10 @@ import numpy as np
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, solve_divided
-from dcrad.energy import rms_error
-from dcrad.scene import load_scene
-from dcrad.solver import Solver
+from dcrad.division.divide import DivideConfig, solve_divided
+from dcrad.io.scene import load_scene
+from dcrad.solving.energy import rms_error
+from dcrad.solving.solver import Solver
 
 PLAIN = dict(overshoot=0.0, stiff_rays=False)
 OVERSHOOT = dict(overshoot=1.0, stiff_rays=False)

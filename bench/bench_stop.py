@@ -22,8 +22,8 @@ sys.path.insert(0, str(ROOT))
 
 from dcrad.config import SolverConfig  # noqa: E402
 from dcrad.pipeline import prepare, resolve_scene  # noqa: E402
-from dcrad.rays import Tracer  # noqa: E402
-from dcrad.solver import Solver  # noqa: E402
+from dcrad.solving.solver import Solver  # noqa: E402
+from dcrad.transport.rays import Tracer  # noqa: E402
 
 
 def one(patches, tracer, config: SolverConfig, phase: str | None, after: float) -> tuple[float, float, str]:

@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dcrad import export, render
-from dcrad.energy import rms_error
+from dcrad.io import export
+from dcrad.outputs import render
 from dcrad.pipeline import live_view
+from dcrad.solving.energy import rms_error
 
 log = logging.getLogger("dcrad.coordinator")
 

@@ -1,6 +1,6 @@
 """Jobs: validate a scene, partition it, run the barrier loop on workers, write results.
 
-Each job runs ``dcrad.divide.run_divided`` (the same loop as in-process runs) in
+Each job runs ``dcrad.division.divide.run_divided`` (the same loop as in-process runs) in
 a thread, over ``RemoteSubscene`` handles; progress after every barrier is
 kept on the job and pushed to watchers on the event loop.
 
@@ -28,11 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from dcrad import render
-from dcrad.accuracy import resolve
 from dcrad.choices import Choice
 from dcrad.config import SolverConfig, unused_divide_note
-from dcrad.divide import (
+from dcrad.division.divide import (
     DivideConfig,
     assemble,
     check_subscenes,
@@ -42,12 +40,14 @@ from dcrad.divide import (
     subscene_specs,
 )
 from dcrad.errors import ConfigError, DcradError
-from dcrad.optics import opaque_for
+from dcrad.outputs import render
+from dcrad.outputs.report import residual_estimate
 from dcrad.pipeline import divided_books, finish_run, output_views, prepare, scene_settings
-from dcrad.report import residual_estimate
 from dcrad.settings import from_pb
-from dcrad.share import run_shared, shared_books
-from dcrad.strategy import on_workers
+from dcrad.solving.accuracy import resolve
+from dcrad.solving.share import run_shared, shared_books
+from dcrad.solving.strategy import on_workers
+from dcrad.transport.optics import opaque_for
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import estimate_to_pb, ledger_to_pb
 
@@ -494,7 +494,7 @@ class JobManager:
 
     def _solve_shared(self, job: Job, scene, patches, size: float, config: SolverConfig, timings: dict,
                       mem: MemoryLog, why: Choice) -> bool:
-        """The job as a shared run (dcrad.share): every live worker holds the whole scene, the
+        """The job as a shared run (dcrad.solving.share): every live worker holds the whole scene, the
         direct gather is split by receivers, each worker runs a replica, the replicas are averaged.
         False (nothing done) when the lights make no exact form factors: the job divides instead."""
         spec = job.spec
@@ -679,7 +679,7 @@ class JobManager:
             subs.append(pb.SubsceneProgress(cell=h.cell, worker=h.worker.address if h.worker else "",
                                             shots=st.shots, rays=st.rays, residual=res,
                                             twin_bytes=st.twin_bytes, reassigned=h.reassigned))
-        est = run.estimate  # the noise-aware estimate (dcrad.noise), from every subscene's sums
+        est = run.estimate  # the noise-aware estimate (dcrad.estimate.noise), from every subscene's sums
         return pb.Progress(job=job.summary(), barrier=run.barriers, shots=snap.shots, rays=snap.rays,
                            rms_estimate=float(est.rms) if est is not None
                            else residual_estimate(snap.residual, b, area),

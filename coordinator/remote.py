@@ -2,7 +2,7 @@
 
 ``RemoteSubscene`` has the same four methods as an in-process ``Subscene``
 (``iterate``, ``collect``, ``deliver``, ``state``), so the barrier loop in
-``dcrad.divide.run_divided`` drives remote workers unchanged.
+``dcrad.division.divide.run_divided`` drives remote workers unchanged.
 
 Failover: after every successful ``deliver`` (the end of a barrier) the handle
 takes a checkpoint of its subscene, streamed from the worker straight into a
@@ -29,10 +29,10 @@ from pathlib import Path
 import grpc
 import numpy as np
 
-from dcrad.boundary import boundary_mode
-from dcrad.divide import SubsceneState, subscene_arrays
+from dcrad.division.boundary import boundary_mode
+from dcrad.division.divide import SubsceneState, subscene_arrays
 from dcrad.errors import DcradError
-from dcrad.noise import NoiseSums
+from dcrad.estimate.noise import NoiseSums
 from dcrad.settings import to_pb
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc

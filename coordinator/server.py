@@ -141,7 +141,7 @@ class CoordinatorServicer(pb_grpc.CoordinatorServicer):
 
 
 def _warm_imports() -> None:
-    """Import what loading a scene needs (dcrad.scene imports trimesh lazily)."""
+    """Import what loading a scene needs (dcrad.io.scene imports trimesh lazily)."""
     import trimesh.exchange.obj  # noqa: F401, PLC0415
     import trimesh.remesh  # noqa: F401, PLC0415
     import trimesh.transformations  # noqa: F401, PLC0415

@@ -1,4 +1,4 @@
-"""A shared run's shares on remote workers (``dcrad.share``), behind ``LocalShares``' two methods.
+"""A shared run's shares on remote workers (``dcrad.solving.share``), behind ``LocalShares``' two methods.
 
 Each share is one ``Share`` call: the header, the patch table the first time a
 worker serves the job (it keeps it, with its Embree scene, until ``drop``), and
@@ -25,10 +25,10 @@ import grpc
 import numpy as np
 
 from dcrad.config import SolverConfig
-from dcrad.direct import shared_rate
 from dcrad.errors import DcradError
 from dcrad.settings import to_pb
-from dcrad.share import Replica, tally_from_arrays, tally_to_arrays
+from dcrad.solving.share import Replica, tally_from_arrays, tally_to_arrays
+from dcrad.transport.direct import shared_rate
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import ArrayAssembler, arrays_to_chunks
 

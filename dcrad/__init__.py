@@ -17,7 +17,7 @@ The public API, for use from Python (the ``dcrad`` command and the gRPC services
 
 ``import dcrad`` loads neither numpy nor Embree: the names above other than the errors are
 imported when first used (PEP 562), since the command and the workers import this package at
-start.  ``dcrad.solve`` is the function; the solver itself is ``dcrad.solver.Solver``.
+start.  ``dcrad.solve`` is the function; the solver itself is ``dcrad.solving.solver.Solver``.
 
 Example: the built-in Cornell box, coarsely meshed (a second or two):
 
@@ -40,15 +40,15 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from .errors import ConfigError, DcradError, SceneError
+from dcrad.errors import ConfigError, DcradError, SceneError
 
 if TYPE_CHECKING:
-    from .api import Result, load, solve
-    from .config import SolverConfig
-    from .emitters import PointSource
-    from .noise import Estimate
-    from .patches import Patches
-    from .scene import Scene
+    from dcrad.api import Result, load, solve
+    from dcrad.config import SolverConfig
+    from dcrad.estimate.noise import Estimate
+    from dcrad.io.scene import Scene
+    from dcrad.meshing.patches import Patches
+    from dcrad.transport.emitters import PointSource
 
 __all__ = ["load", "solve", "Result", "Scene", "Patches", "Estimate", "SolverConfig", "PointSource", "DcradError",
            "SceneError", "ConfigError"]
@@ -58,19 +58,19 @@ def __getattr__(name: str) -> Any:
     """The API's names other than the errors, imported when first used (PEP 562)."""
     value: Any
     if name in ("load", "solve", "Result"):
-        from . import api
+        from dcrad import api
 
         value = getattr(api, name)
     elif name == "Scene":
-        from .scene import Scene as value
+        from dcrad.io.scene import Scene as value
     elif name == "Patches":
-        from .patches import Patches as value
+        from dcrad.meshing.patches import Patches as value
     elif name == "Estimate":
-        from .noise import Estimate as value
+        from dcrad.estimate.noise import Estimate as value
     elif name == "SolverConfig":
-        from .config import SolverConfig as value
+        from dcrad.config import SolverConfig as value
     elif name == "PointSource":
-        from .emitters import PointSource as value
+        from dcrad.transport.emitters import PointSource as value
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value

@@ -19,15 +19,15 @@ from typing import Any
 
 import numpy as np
 
-from . import pipeline
-from .config import SolverConfig
-from .emitters import Emitter
-from .errors import ConfigError
-from .export import input_triangle_radiosity
-from .luminaires import load_schedule
-from .noise import Estimate
-from .patches import Patches
-from .scene import Scene, load_scene
+from dcrad import pipeline
+from dcrad.config import SolverConfig
+from dcrad.errors import ConfigError
+from dcrad.estimate.noise import Estimate
+from dcrad.io.export import input_triangle_radiosity
+from dcrad.io.scene import Scene, load_scene
+from dcrad.meshing.patches import Patches
+from dcrad.transport.emitters import Emitter
+from dcrad.transport.luminaires import load_schedule
 
 __all__ = ["Result", "load", "solve"]
 
@@ -90,7 +90,7 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
                     already, and then ``scale`` only goes into the report's settings
     workplane     : with ``out``, a work-plane illuminance grid this many metres above the floor
     width, height : the preview images' size, with ``out``
-    on_progress   : called with the solver after each batch (``dcrad.progress.Progress`` reads it)
+    on_progress   : called with the solver after each batch (``dcrad.outputs.progress.Progress`` reads it)
     should_stop   : polled between batches; True stops the run cleanly (the result is still whole)
     sources       : light sources that are not surfaces of the scene (``dcrad.PointSource``, any
                     ``emitters.Emitter``), in the scene's coordinates after ``scale`` (metres),

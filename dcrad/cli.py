@@ -24,13 +24,13 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
-from .accuracy import resolve
-from .choices import Choice
-from .config import BOUNDARY_MODES, DivideConfig, SolverConfig
-from .divide import SUBSCENES_PER_WORKER
-from .errors import DcradError
-from .progress import error_text
-from .settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
+from dcrad.choices import Choice
+from dcrad.config import BOUNDARY_MODES, DivideConfig, SolverConfig
+from dcrad.division.divide import SUBSCENES_PER_WORKER
+from dcrad.errors import DcradError
+from dcrad.outputs.progress import error_text
+from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
+from dcrad.solving.accuracy import resolve
 
 __all__ = ["main"]
 
@@ -51,7 +51,7 @@ def _solver_args(p: argparse.ArgumentParser) -> None:
 
 def parse_planes(text: str) -> list[tuple[int, float]]:
     """``"x=4.06,z=3"`` -> [(0, 4.06), (2, 3.0)]; a bad item raises ConfigError naming it."""
-    from .errors import ConfigError
+    from dcrad.errors import ConfigError
 
     planes = []
     for item in filter(None, (t.strip() for t in text.split(","))):
@@ -102,11 +102,10 @@ def _restore(previous: dict) -> None:
 
 def cmd_solve(args) -> int:
     from coordinator.embedded import check_workers
-
-    from .errors import ConfigError
-    from .pipeline import resolve_scene, solve_to
-    from .progress import ProgressBar
-    from .render import check_image_size
+    from dcrad.errors import ConfigError
+    from dcrad.outputs.progress import ProgressBar
+    from dcrad.outputs.render import check_image_size
+    from dcrad.pipeline import resolve_scene, solve_to
 
     check_image_size(args.width, args.height)
     choice, loaded = None, None
@@ -171,10 +170,10 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
     None) for the solve to reuse (a
     built-in scene is written into ``out``/scene, where the solve writes it: the 3x3 office was
     written and loaded twice, 0.5-1.2 s more than ``--workers 0``)."""
-    from .mesh import estimate_elements
-    from .pipeline import default_patch_size, patch_limit, resolve_scene
-    from .scene import load_scene
-    from .strategy import gathers, local
+    from dcrad.io.scene import load_scene
+    from dcrad.meshing.mesh import estimate_elements
+    from dcrad.pipeline import default_patch_size, patch_limit, resolve_scene
+    from dcrad.solving.strategy import gathers, local
 
     if args.planes or args.subscenes > 1:
         return 0, Choice("workers", "solved in this process (--workers 0 by default with --planes or "
@@ -255,8 +254,8 @@ def _k_list(text: str) -> tuple[int, ...]:
 
 
 def cmd_compare(args) -> int:
-    from .compare import compare, summary_lines, write_compare
-    from .pipeline import resolve_scene
+    from dcrad.estimate.compare import compare, summary_lines, write_compare
+    from dcrad.pipeline import resolve_scene
 
     out = Path(args.out)
     config = from_args(SolverConfig, args)
@@ -289,8 +288,8 @@ def _summary(report: dict, out: Path) -> None:
         per = f" ({', '.join(reads)})" if reads else ""
         print(f"dcrad: {text}{per}, {100 * (err['rms_norm'] or 0.0):.2f}% of RMS(B) "
               f"(estimated, {err['rms']:.3g} W/m^2)")
-    from .luminaires import summary_lines
-    from .punctual import summary_lines as light_lines
+    from dcrad.transport.luminaires import summary_lines
+    from dcrad.transport.punctual import summary_lines as light_lines
 
     for line in [*summary_lines(report.get("luminaires")), *light_lines(report.get("gltf_lights"))]:
         print(f"dcrad: {line}")
@@ -303,15 +302,14 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
 
     from coordinator import client
     from coordinator.embedded import LocalCluster
-
-    from .errors import SolveError
-    from .pipeline import resolve_scene
+    from dcrad.errors import SolveError
+    from dcrad.pipeline import resolve_scene
 
     if args.planes:
         raise DcradError("--planes works in process only (--workers 0)")
     stop = _Interrupt()
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
-        from .scene import load_scene
+        from dcrad.io.scene import load_scene
 
         # the processes start (imports: about a second) while the scene is written (a built-in
         # one) and validated here; a bad scene fails naming the user's own file, and the
@@ -363,8 +361,8 @@ def cmd_scenes(args) -> int:
     import scenes
 
     if args.name:  # the same names as `dcrad solve`, parameters included (office:rows=3,cols=4)
-        from .errors import ConfigError
-        from .pipeline import resolve_scene
+        from dcrad.errors import ConfigError
+        from dcrad.pipeline import resolve_scene
 
         name = args.name.partition(":")[0]
         if name not in scenes.names():

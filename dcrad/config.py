@@ -6,7 +6,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from .errors import ConfigError
+from dcrad.errors import ConfigError
 
 __all__ = ["Tolerances", "SolverConfig", "DivideConfig", "BOUNDARY_MODES", "TOL", "setting", "divide_flags_set",
            "unused_divide_note"]
@@ -69,10 +69,10 @@ class SolverConfig:
     seed: int = setting(0, "seed of every random stream in a run")
     accuracy: float = setting(0.02, "target estimated RMS error over RMS of the reflected light B - E: the "
                                     "solver chooses the ray density and stops when its estimate meets it "
-                                    "(used while --tol is 0; see dcrad/accuracy.py)")
+                                    "(used while --tol is 0; see dcrad/solving/accuracy.py)")
     direct: bool = setting(True, "gather the direct light with shadow rays from every patch to the emitters "
                                  "(next-event estimation) before shooting the reflected light; single-subscene "
-                                 "runs (dcrad/direct.py)")
+                                 "runs (dcrad/transport/direct.py)")
     shadow_rays: int = setting(0, "shadow rays per receiving patch for the direct light (0: from --accuracy)")
     tol: float = setting(0.0, "expert: stop when the residual (unshot + in flight) / emitted falls to this "
                               "instead of by --accuracy (0: by --accuracy; 0.01 when --accuracy is 0 too)")

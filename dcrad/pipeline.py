@@ -19,19 +19,21 @@ from types import SimpleNamespace
 import numpy as np
 
 import scenes
-
-from . import export, luminaires, mesh, optics, photometry, punctual, render
-from .accuracy import describe, noise_floor_note, resolve
-from .choices import Choice, Choices
-from .config import SolverConfig, unused_divide_note
-from .divide import build_subscenes, run_subscenes
-from .errors import ConfigError, SceneError
-from .passes import solve_to_accuracy
-from .patches import Patches
-from .rays import Tracer
-from .report import TIMINGS, RunBooks, run_report, write_json
-from .scene import NO_EMITTERS, load_scene
-from .solver import GREY_CHOICE, Stats, stiff_choice
+from dcrad.choices import Choice, Choices
+from dcrad.config import SolverConfig, unused_divide_note
+from dcrad.division.divide import build_subscenes, run_subscenes
+from dcrad.errors import ConfigError, SceneError
+from dcrad.io import export
+from dcrad.io.scene import NO_EMITTERS, load_scene
+from dcrad.meshing import mesh
+from dcrad.meshing.patches import Patches
+from dcrad.outputs import photometry, render
+from dcrad.outputs.report import TIMINGS, RunBooks, run_report, write_json
+from dcrad.solving.accuracy import describe, noise_floor_note, resolve
+from dcrad.solving.passes import solve_to_accuracy
+from dcrad.solving.solver import GREY_CHOICE, Stats, stiff_choice
+from dcrad.transport import luminaires, optics, punctual
+from dcrad.transport.rays import Tracer
 
 __all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "solve_single",
            "resolve_scene", "divided_books", "finish_run"]

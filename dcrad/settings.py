@@ -24,8 +24,8 @@ import dataclasses
 import math
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
-from .config import BOUNDARY_MODES, DivideConfig
-from .errors import ConfigError
+from dcrad.config import BOUNDARY_MODES, DivideConfig
+from dcrad.errors import ConfigError
 
 __all__ = ["add_flags", "add_scene_flags", "scene_values", "add_divide_flags", "divide_from_args", "from_args",
            "to_argv", "to_pb", "from_pb", "missing_on_wire", "flag_name"]

@@ -14,11 +14,11 @@ from typing import BinaryIO
 
 import numpy as np
 
-from .divide import BarrierPlan
-from .energy import ACCOUNTS, MAGNITUDES, Ledger
-from .errors import ExchangeError
-from .solver import Stiffness
-from .v1 import dcrad_pb2 as pb
+from dcrad.division.divide import BarrierPlan
+from dcrad.errors import ExchangeError
+from dcrad.solving.energy import ACCOUNTS, MAGNITUDES, Ledger
+from dcrad.solving.solver import Stiffness
+from dcrad.v1 import dcrad_pb2 as pb
 
 __all__ = [
     "CHUNK_BYTES", "ALLOWED_DTYPES", "array_chunks", "arrays_to_chunks", "ArrayAssembler", "assemble_arrays",
@@ -143,7 +143,7 @@ def ledger_from_pb(msg: pb.Ledger) -> Ledger:
 
 
 def plan_fields(plan) -> dict:
-    """IterateRequest fields for a ``dcrad.divide.BarrierPlan`` (None: none, shoot plainly)."""
+    """IterateRequest fields for a ``dcrad.division.divide.BarrierPlan`` (None: none, shoot plainly)."""
     if plan is None:
         return {}
     return {"ambient_scale": [float(x) for x in plan.stiffness.scale],

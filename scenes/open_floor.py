@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dcrad.patches import Patches
+from dcrad.meshing.patches import Patches
 
 __all__ = ["open_floor", "point_to_square", "FLOOR_RHO", "LIGHT_E"]
 

@@ -17,7 +17,7 @@ import pathlib
 import numpy as np
 import OpenImageIO as oiio
 
-from dcrad.scene import UP_AXES
+from dcrad.io.scene import UP_AXES
 
 __all__ = ["variant", "CHECKER_LINEAR", "write_checker"]
 

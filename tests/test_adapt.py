@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from dcrad.mesh import _key
-from dcrad.photometry import shown_direct
+from dcrad.io.scene import load_scene
+from dcrad.meshing.mesh import _key
+from dcrad.outputs.photometry import shown_direct
 from dcrad.pipeline import default_patch_size, prepare
-from dcrad.scene import load_scene
 
 
 def _room_with_a_table(folder):
@@ -101,7 +101,7 @@ def test_a_room_in_full_shadow_or_black_is_left_as_meshed(tmp_path, reflect):
     """Nothing varies, nothing is split: a lamp facing away from the room (its light leaves through
     nothing: every point sees none of it) and a black room with the lamp lit (no reflected light,
     contrast from the direct light alone, no division by zero)."""
-    from dcrad.mesh import adapt
+    from dcrad.meshing.mesh import adapt
 
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1], [1, 0, 1]], float)
     f = np.array([[0, 2, 1], [1, 2, 3]])
@@ -118,7 +118,7 @@ def test_a_point_light_s_shadow_is_refined_too(tmp_path):
     """A room lit only by a point light (a luminaire, a glTF light: emitters.Emitter) given to
     ``prepare``: its sharp shadow of the table is refined as an emitting surface's is, and the
     patches carry the light."""
-    from dcrad.emitters import PointSource
+    from dcrad.transport.emitters import PointSource
 
     path = _room_with_a_table(tmp_path)
     text = (tmp_path / "room.mtl").read_text().replace("Ke 20 20 20", "Ke 0 0 0")
@@ -138,12 +138,12 @@ def test_a_mesh_past_the_looks_size_is_not_refined_and_says_so(tmp_path, monkeyp
     report.json's mesh says why (here with the limit lowered to this small room's elements)."""
     import json
 
-    import dcrad.scene
+    import dcrad.io.scene
     from dcrad.pipeline import solve_to
 
     path = _room_with_a_table(tmp_path)
     plain = load_scene(path, up="y").patches(default_patch_size(load_scene(path, up="y")))
-    monkeypatch.setattr(dcrad.scene, "ADAPT_MOST", len(plain) - 1)
+    monkeypatch.setattr(dcrad.io.scene, "ADAPT_MOST", len(plain) - 1)
     _, p, _ = prepare(path, up="y")
     assert p.adapted["skipped"] and p.adapted["added"] == 0
     np.testing.assert_array_equal(p.faces, plain.faces)

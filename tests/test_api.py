@@ -83,7 +83,7 @@ def test_bad_input_raises_the_api_errors(tmp_path):
 def test_import_dcrad_is_cheap_and_solve_stays_the_function():
     """``import dcrad`` (the command and the workers do it at start) loads no numpy, Embree, trimesh,
     OpenImageIO or gRPC; the API's names come when used; importing the solver's module
-    (``dcrad/solver.py``) leaves the function ``dcrad.solve`` as it is."""
+    (``dcrad/solving/solver.py``) leaves the function ``dcrad.solve`` as it is."""
     code = """if True:
         import sys
         import dcrad
@@ -91,9 +91,9 @@ def test_import_dcrad_is_cheap_and_solve_stays_the_function():
         loaded = sorted(m for m in sys.modules if m.startswith(heavy))
         assert not loaded, loaded
         assert sorted(m for m in sys.modules if m.startswith("dcrad")) == ["dcrad", "dcrad.errors"]
-        from dcrad.solver import Solver
+        from dcrad.solving.solver import Solver
         assert callable(dcrad.solve) and dcrad.solve.__module__ == "dcrad.api", dcrad.solve
-        assert sys.modules["dcrad.solver"].Solver is Solver
+        assert sys.modules["dcrad.solving.solver"].Solver is Solver
         for name in dcrad.__all__:
             assert getattr(dcrad, name) is not None, name
         try:
@@ -112,9 +112,9 @@ def test_import_dcrad_is_cheap_and_solve_stays_the_function():
 def test_all_lists_the_api():
     assert set(dcrad.__all__) == {"load", "solve", "Result", "Scene", "Patches", "Estimate", "SolverConfig",
                                   "PointSource", "DcradError", "SceneError", "ConfigError"}
-    from dcrad.emitters import PointSource
-    from dcrad.noise import Estimate
-    from dcrad.patches import Patches
-    from dcrad.scene import Scene
+    from dcrad.estimate.noise import Estimate
+    from dcrad.io.scene import Scene
+    from dcrad.meshing.patches import Patches
+    from dcrad.transport.emitters import PointSource
 
     assert (dcrad.Scene, dcrad.Patches, dcrad.Estimate, dcrad.PointSource) == (Scene, Patches, Estimate, PointSource)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from dcrad.boundary import Boundary, TwinBuffer, coarsen_directions, direction_levels, make_boundary, transfer
+from dcrad.division.boundary import Boundary, TwinBuffer, coarsen_directions, direction_levels, make_boundary, transfer
 from dcrad.errors import ExchangeError, PartitionError
-from dcrad.sampling import concentric_disk, cosine_hemisphere
+from dcrad.transport.sampling import concentric_disk, cosine_hemisphere
 
 AXES = [0, 1, 2]
 
@@ -467,7 +467,7 @@ def test_transfer_rays_routes_every_ray_once_to_the_far_side():
     """Exact forwarding: each recorded ray goes, unchanged, to the cell across its boundary;
     a million rays of random power pass the power check (summed in another order), and a
     parcel naming a boundary its cell does not touch is refused."""
-    from dcrad.boundary import RayParcel, transfer_rays
+    from dcrad.division.boundary import RayParcel, transfer_rays
 
     rng = np.random.default_rng(1)
     bs = [make_boundary(0, 0, 1.0, (0, 0), (1, 1), 0, 1, 0.1, 4),

@@ -13,10 +13,10 @@ import numpy as np
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.patches import triangle_areas
-from dcrad.photometry import EFFICACY
+from dcrad.io.scene import load_scene
+from dcrad.meshing.patches import triangle_areas
+from dcrad.outputs.photometry import EFFICACY
 from dcrad.pipeline import solve_to
-from dcrad.scene import load_scene
 from scenes.cie import ROOM
 
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 import scenes
-from dcrad.compare import compare, loglog_interp, write_compare
 from dcrad.config import SolverConfig
 from dcrad.errors import DcradError
+from dcrad.estimate.compare import compare, loglog_interp, write_compare
 from dcrad.pipeline import prepare
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -114,7 +114,7 @@ def _run(k, points):
     ([(0, 1.0), (100, 0.5), (1000, 0.005)], (True, False, False)),
 ])
 def test_claims_on_curves_with_a_known_answer(divided, expect):
-    from dcrad.compare import _claims
+    from dcrad.estimate.compare import _claims
 
     seq = _run(1, [(0, 1.0), (10, 0.1), (100, 0.01), (1000, 0.001)])
     got = _claims([seq, _run(2, divided)])

@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pytest
 
-from dcrad import direct
-from dcrad.lights import form_factors, light_polygons, polygon_form_factor
 from dcrad.pipeline import prepare, resolve_scene
-from dcrad.rays import Tracer
+from dcrad.transport import direct
+from dcrad.transport.lights import form_factors, light_polygons, polygon_form_factor
+from dcrad.transport.rays import Tracer
 
 
 def _reference(x: np.ndarray, nx: np.ndarray, loops: np.ndarray, ny: np.ndarray) -> np.ndarray:

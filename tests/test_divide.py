@@ -7,11 +7,11 @@ import pytest
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, solve_divided
-from dcrad.energy import read_error, rms_error
-from dcrad.noise import SHOWN_SLACK
+from dcrad.division.divide import DivideConfig, solve_divided
+from dcrad.estimate.noise import SHOWN_SLACK
 from dcrad.pipeline import prepare
-from dcrad.solver import Solver
+from dcrad.solving.energy import read_error, rms_error
+from dcrad.solving.solver import Solver
 from scenes.open_floor import open_floor, point_to_square
 
 
@@ -119,7 +119,7 @@ def test_boundary_across_an_empty_box(tmp_path, mode):
 @pytest.mark.parametrize("mode", ["binned", "exact"])
 def test_checkpoint_resumes_bit_identically(office, mode):
     """A subscene rebuilt from its arrays and a barrier checkpoint continues exactly as the original."""
-    from dcrad.divide import build_subscene, build_subscenes, checkpoint_arrays, run_divided, subscene_arrays
+    from dcrad.division.divide import build_subscene, build_subscenes, checkpoint_arrays, run_divided, subscene_arrays
 
     _, p, _ = prepare(office)
     cfg = SolverConfig(tol=0.01)
@@ -203,7 +203,7 @@ def test_placement_evens_the_expected_work_against_the_best_split():
     subscenes on 2 and 3 slots come within 4/3 of the optimum (LPT's bound) and mostly hit it."""
     import itertools
 
-    from dcrad.divide import placement
+    from dcrad.division.divide import placement
 
     def best(w, m):
         return min(max(sum(w[i] for i in range(len(w)) if s[i] == j) for j in range(m))
@@ -233,7 +233,7 @@ def test_default_workers_follow_the_run_not_only_the_size():
     """`dcrad solve`'s default (strategy.local): two local workers sharing the run where accuracy
     mode gathers the light (share.py) and the scene is big enough, two dividing it for big shooting
     runs, one process for small ones or on one CPU; the report's line says why."""
-    from dcrad.strategy import AUTO_DIVIDE_PATCHES, SHARE_PATCHES, local
+    from dcrad.solving.strategy import AUTO_DIVIDE_PATCHES, SHARE_PATCHES, local
 
     big = 4 * AUTO_DIVIDE_PATCHES
     assert local(big, 2, gathered=False).workers == 2
@@ -249,8 +249,8 @@ def test_the_coordinator_shares_runs_that_gather_and_divides_the_rest():
     """strategy.on_workers: shared where accuracy mode gathers the direct light exactly and no
     subscenes were asked for; divided (two subscenes a worker, or those asked for) for a tolerance
     run, too many receivers for exact form factors, or a resumed divided job; each says why."""
-    from dcrad.direct import MAX_ANALYTIC_RECEIVERS
-    from dcrad.strategy import on_workers
+    from dcrad.solving.strategy import on_workers
+    from dcrad.transport.direct import MAX_ANALYTIC_RECEIVERS
 
     acc = SolverConfig(accuracy=0.02)
     s = on_workers(acc, 5000, 6000, live=3)
@@ -272,7 +272,7 @@ def test_landing_barrier_meets_the_target_in_fewer_barriers(tmp_path, monkeypatc
     error measured against a converged unsplit solution is that of the plain run.  At 0.27 m, the
     office's automatic size before the mesh was coarsened for adaptive refinement: the coarser
     mesh's plain run reaches 4% in three barriers, with no barrier to save."""
-    import dcrad.divide as divide
+    import dcrad.division.divide as divide
 
     path = scenes.write_builtin("office", tmp_path, seed=0)
     _, ref, _ = prepare(path, 0.27)
@@ -304,7 +304,7 @@ def test_a_cancel_ends_the_barrier_in_flight(office):
     """Cancelled three batches into barrier 2: the subscene's doIterations stops after the batch
     in flight, the other subscene shoots nothing more, the books still close, and the run ends
     "stopped" (not "stalled", though that barrier shot little)."""
-    from dcrad.divide import build_subscenes, run_divided
+    from dcrad.division.divide import build_subscenes, run_divided
 
     _, p, _ = prepare(office)
     cfg = SolverConfig(tol=1e-12, seed=5, batch_rays=4096, max_rays_per_shot=4096)  # many small batches
@@ -345,8 +345,8 @@ def test_crossing_share_does_not_count_a_barrier_cut_short_as_crossing():
     """A barrier asked to leave a quarter that ended at its cap with half left, 2% of the emitted
     power crossed: the crossing share is what crossed over what left (not the shortfall); one whose
     subscenes shot past the quarter keeps the residual's reading (it lands that way again)."""
-    from dcrad.divide import crossing_share
-    from dcrad.energy import Ledger
+    from dcrad.division.divide import crossing_share
+    from dcrad.solving.energy import Ledger
 
     def ledger(residual, exported):
         return Ledger(emitted=np.full(3, 100 / 3), unshot=np.full(3, residual * 100 / 3),
@@ -372,7 +372,7 @@ def test_a_divided_run_on_its_noise_floor_says_so(tmp_path):
     assert run.stopped_by == "noise_floor" and run.estimate.noise_refl > 0.03
     # it stops once what is left is below noise_floor's bias share, or when no subscene has anything
     # left to shoot, whichever comes first
-    from dcrad.accuracy import noise_floor
+    from dcrad.solving.accuracy import noise_floor
     assert noise_floor(run.estimate, 0.03) or run.snapshots[-1].rays == run.snapshots[-2].rays
     books = divided_books(run, p, cfg, boundaries, part, divide)
     assert any(c.text.startswith("stopped on the noise floor") and "--workers 0" in c.text

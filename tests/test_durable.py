@@ -25,7 +25,7 @@ from coordinator.jobs import JobManager
 from coordinator.remote import WorkerPool
 from coordinator.store import CheckpointWriter, ChunkFile, JobRecord, JobStore, cell_file
 from dcrad.config import SolverConfig
-from dcrad.divide import (
+from dcrad.division.divide import (
     DivideConfig,
     assemble,
     build_subscene,

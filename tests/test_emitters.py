@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import dcrad
-from dcrad.emitters import Emitter, PointSource
 from dcrad.errors import ConfigError
-from dcrad.photometry import workplane
-from dcrad.rays import Tracer
+from dcrad.outputs.photometry import workplane
+from dcrad.transport.emitters import Emitter, PointSource
+from dcrad.transport.rays import Tracer
 from scenes.objwriter import ObjWriter
 
 SIDE, HEIGHT = 4.0, 3.0
@@ -83,7 +83,7 @@ def test_a_point_source_s_direct_light_on_reflecting_patches_is_gathered_exactly
     rule, computed here from the geometry alone) times one factor common to all patches, the share
     of the power its rays landed over the gathered total (within their noise of 1).  Shot instead
     (--no-direct), every patch carries its own noise."""
-    from dcrad.sampling import DEGREE2_RULE
+    from dcrad.transport.sampling import DEGREE2_RULE
 
     i0, rho = 1000.0 / 179.0, 0.5
 
@@ -170,7 +170,7 @@ def test_sources_are_refused_where_they_cannot_run_yet_and_bad_ones_by_name(tmp_
     """Divided and shared runs cannot carry them yet: one line saying so; a bad position or
     intensity is named."""
     from dcrad.config import DivideConfig, SolverConfig
-    from dcrad.divide import build_subscenes
+    from dcrad.division.divide import build_subscenes
     from dcrad.pipeline import prepare
 
     _, p, _ = prepare(box(tmp_path, 0.5), 0.5)

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from dcrad.config import SolverConfig
-from dcrad.emitters import PointSource
-from dcrad.optics import Glazing, pane_transmittance
-from dcrad.passes import solve_to_accuracy
-from dcrad.photometry import workplane
+from dcrad.outputs.photometry import workplane
 from dcrad.pipeline import prepare
-from dcrad.rays import Tracer
-from dcrad.sampling import DEGREE2_RULE
+from dcrad.solving.passes import solve_to_accuracy
+from dcrad.transport.emitters import PointSource
+from dcrad.transport.optics import Glazing, pane_transmittance
+from dcrad.transport.rays import Tracer
+from dcrad.transport.sampling import DEGREE2_RULE
 from scenes.objwriter import ObjWriter
 
 TAU_N = 0.8815  # 6 mm clear float glass at normal incidence
@@ -187,9 +187,9 @@ def test_a_luminous_panel_through_a_pane_gathered_and_shot_agree(tmp_path):
 def test_divided_and_shared_runs_refuse_glass_by_name(tmp_path):
     """Runs that cannot carry panes yet say so, and nothing is solved with the glass made opaque."""
     from dcrad.config import DivideConfig
-    from dcrad.divide import solve_divided
+    from dcrad.division.divide import solve_divided
     from dcrad.errors import ConfigError
-    from dcrad.share import LocalShares, run_shared
+    from dcrad.solving.share import LocalShares, run_shared
 
     patches, _ = glazed(tmp_path, 0.5)
     with pytest.raises(ConfigError, match="glass .* not divided"):
@@ -232,7 +232,7 @@ def test_mtl_glass_is_read_as_panes_and_bad_glass_is_refused(tmp_path):
     ``d`` alone gives 1 - d; Tf on an opaque illum model is reported, not taken; a transmittance
     outside [0, 1] or an index below 1 is refused by name."""
     from dcrad.errors import SceneValueError
-    from dcrad.scene import load_scene
+    from dcrad.io.scene import load_scene
 
     scene = load_scene(write_room(tmp_path / "a", "Kd 0 0 0\nTf 0.8 0.7 0.6\nNi 1.6\nillum 4"), up="y")
     win = np.array([n.startswith("window") for n in scene.names])[scene.obj]
@@ -254,7 +254,7 @@ def test_mtl_glass_is_read_as_panes_and_bad_glass_is_refused(tmp_path):
 def test_a_window_lets_a_room_s_light_out(tmp_path):
     """The closed room with a clear window (tau_n 0.88): a share of the lamp's light escapes through it
     (none does with the window opaque), the books close, and the run's estimate holds."""
-    from dcrad.passes import solve_to_accuracy as solve
+    from dcrad.solving.passes import solve_to_accuracy as solve
 
     escaped = {}
     for name, body in (("glass", "Kd 0 0 0\nTf 0.88 0.88 0.88\nNi 1.52\nillum 4"), ("opaque", "Kd 0 0 0")):
@@ -272,7 +272,7 @@ def test_gltf_transmission_makes_panes(tmp_path):
     from test_punctual import box_gltf
 
     from dcrad.errors import SceneValueError
-    from dcrad.scene import load_scene
+    from dcrad.io.scene import load_scene
 
     def materials(factor, ior=None):
         glass = {"name": "floor", "pbrMetallicRoughness": {"baseColorFactor": [0.9, 0.9, 0.9, 1.0]},

@@ -8,9 +8,9 @@ import pytest
 
 import scenes
 from coordinator.remote import RemoteSubscene, WorkerPool
-from dcrad.boundary import MODES, boundary_mode
 from dcrad.config import BOUNDARY_MODES, DivideConfig, SolverConfig
-from dcrad.divide import SubsceneHandle, build_subscenes
+from dcrad.division.boundary import MODES, boundary_mode
+from dcrad.division.divide import SubsceneHandle, build_subscenes
 from dcrad.errors import ConfigError
 from dcrad.pipeline import prepare
 

@@ -12,7 +12,7 @@ import pytest
 
 import scenes
 from dcrad.config import DivideConfig, SolverConfig
-from dcrad.divide import build_subscenes, run_subscenes
+from dcrad.division.divide import build_subscenes, run_subscenes
 from dcrad.pipeline import prepare, solve_to
 
 #: a ray budget, not a tolerance: every run does about the same work, in different barrier schedules

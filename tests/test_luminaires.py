@@ -24,9 +24,9 @@ import pytest
 import dcrad
 from dcrad.cli import main
 from dcrad.errors import ConfigError
-from dcrad.luminaires import Distribution, Luminaire, load_schedule, read_photometric
-from dcrad.photometry import workplane
-from dcrad.rays import Tracer
+from dcrad.outputs.photometry import workplane
+from dcrad.transport.luminaires import Distribution, Luminaire, load_schedule, read_photometric
+from dcrad.transport.rays import Tracer
 from scenes.objwriter import ObjWriter
 
 GAMMA_HALF = np.arange(0.0, 90.5, 1.0)  # 0-90 every degree: cos interpolates to 4e-5
@@ -343,7 +343,7 @@ def test_rays_carry_the_distribution_and_exactly_its_power():
     distribution's (the share above 60 degrees from nadir against its closed form)."""
     g = np.arange(0.0, 180.1, 2.0)
     dist = Distribution.expand([0.0], g, [np.cos(np.radians(g)) ** 2], "axial")  # I = cos^2, up and down
-    from dcrad.luminaires import Photometric
+    from dcrad.transport.luminaires import Photometric
 
     ph = Photometric("x.ies", "test", dist, None, None, (0, 0, 0), "point")
     lum = Luminaire(np.zeros(3), photometric=ph, aim=np.array([0.0, -1, 0]), c0=np.array([1.0, 0, 0]))
@@ -360,7 +360,7 @@ def test_rays_carry_the_distribution_and_exactly_its_power():
     assert band == pytest.approx(1 / 8, rel=3e-3)
     assert lum.lumens == pytest.approx(4 * math.pi / 3, rel=1e-3)  # chords of cos^2 at 2 degrees: 2e-4 high
     # a batch of one ray (a solver's last batch can be) carries all the power, whichever half it joins
-    from dcrad.emitters import PointSource
+    from dcrad.transport.emitters import PointSource
 
     point = PointSource(np.zeros(3), np.ones(3))
     for seed in range(8):

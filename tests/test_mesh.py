@@ -8,12 +8,12 @@ import trimesh
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.export import input_triangle_radiosity
-from dcrad.mesh import AREA_SHARE, refine
-from dcrad.passes import solve_to_accuracy
-from dcrad.patches import triangle_areas
+from dcrad.io.export import input_triangle_radiosity
+from dcrad.io.scene import load_scene
+from dcrad.meshing.mesh import AREA_SHARE, refine
+from dcrad.meshing.patches import triangle_areas
 from dcrad.pipeline import default_patch_size, prepare
-from dcrad.scene import load_scene
+from dcrad.solving.passes import solve_to_accuracy
 from scenes.variants import variant
 
 
@@ -113,8 +113,8 @@ def test_clusters_settle_where_their_patches_agree_within_their_noise():
     spreads (kept, its spread beyond the noise booked as bias), cluster 1's differ far beyond
     theirs (undone: each patch keeps its own B); the numbers are computed here from the
     definitions, S = sum A |r - r_mean|^2 against N = sum A |D/2|^2 (1 - A/A_c)."""
-    from dcrad.noise import NoiseTally
-    from dcrad.patches import Patches
+    from dcrad.estimate.noise import NoiseTally
+    from dcrad.meshing.patches import Patches
 
     n = 8
     v = np.array([[i, 0.0, 0.0] for i in range(n + 2)] + [[i, 1.0, 0.0] for i in range(n + 2)], float)
@@ -140,7 +140,7 @@ def test_pooling_a_uniform_furnace_lowers_its_error_per_triangle(tmp_path):
     patch, exactly.  Every face split 256-fold: the small triangles form clusters, which settle
     (their light is uniform: nearly all kept), and pooled B per triangle is closer to B* than
     each triangle's own."""
-    from dcrad.patches import Patches
+    from dcrad.meshing.patches import Patches
     from scenes.furnace import furnace_box
 
     rho = 0.5

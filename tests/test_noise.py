@@ -12,17 +12,17 @@ import math
 import numpy as np
 import pytest
 
-from dcrad.accuracy import by_accuracy, rays_for, resolve
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, solve_divided
-from dcrad.lights import light_polygons, polygon_form_factor
-from dcrad.noise import SHOWN_SLACK, NoiseSums, NoiseTally, combine, half_mask, held_factors, split_power
-from dcrad.passes import solve_to_accuracy
-from dcrad.patches import Patches
+from dcrad.division.divide import DivideConfig, solve_divided
+from dcrad.estimate.noise import SHOWN_SLACK, NoiseSums, NoiseTally, combine, half_mask, held_factors, split_power
+from dcrad.meshing.patches import Patches
 from dcrad.pipeline import prepare
-from dcrad.rays import Tracer
-from dcrad.shoot import deposit, landing
-from dcrad.solver import UNSHOT_SHARE, Solver
+from dcrad.solving.accuracy import by_accuracy, rays_for, resolve
+from dcrad.solving.passes import solve_to_accuracy
+from dcrad.solving.solver import UNSHOT_SHARE, Solver
+from dcrad.transport.lights import light_polygons, polygon_form_factor
+from dcrad.transport.rays import Tracer
+from dcrad.transport.shoot import deposit, landing
 from scenes.furnace import furnace_box
 
 RHO = 0.5
@@ -95,7 +95,7 @@ def test_a_calibrated_first_pass_and_its_blend_keep_the_estimate_honest(uniform_
     the density the first one spent and shoots until its unshot light's bias is under a quarter of
     the target.  Against the exact furnace solution the estimate stays within 1.5x of the error,
     the target is met, the ledger closes."""
-    from dcrad.passes import CALIBRATION
+    from dcrad.solving.passes import CALIBRATION
 
     patches, tracer = uniform_furnace
     patches.reset()
@@ -359,7 +359,7 @@ def test_light_lists_bound_the_exact_form_factor(office_lights):
     """Every receiver's exact unoccluded form factor (Lambert) to every light, at its centroid and
     near its corners, is within its cell's bound: 0 where the light is not listed, at most
     q FAR_BOUND where the light is far (q < 1); the lists never drop a light a receiver sees."""
-    from dcrad.direct import FAR_BOUND, light_lists
+    from dcrad.transport.direct import FAR_BOUND, light_lists
 
     p, lights, rec = office_lights
     lists = light_lists(p, lights, rec)
@@ -384,7 +384,7 @@ def test_far_pairs_are_drawn_without_bias(office_lights, monkeypatch):
     """light_pairs draws a far light's pairs per half with chance q, weighted 1/q: over many
     draws each pair's weight averages 1, and no pair outside the full set (every listed light
     near) is drawn."""
-    from dcrad import direct
+    from dcrad.transport import direct
 
     p, lights, rec = office_lights
     monkeypatch.setattr(direct, "FAR_BOUND", 1e-300)
@@ -430,7 +430,7 @@ def bright_box(uniform_furnace):
 def _gathers(patches, tracer, refl, share, rays, seeds, spot=None):
     """(seeds, n, 3) indirect irradiance G = what the final gather's rays read, per receiver, and the
     half difference G_A - G_B (final.FinalGather's sums)."""
-    from dcrad.final import FinalGather
+    from dcrad.transport.final import FinalGather
 
     patches.reset()
     patches.radiosity = patches.emission + refl
@@ -482,7 +482,7 @@ def test_korobov_lattice_is_the_fibonacci_lattice_and_integrates_a_disk_without_
     coordinate takes every one of the m strata once; over random shifts it integrates a disk's
     indicator (a discontinuous integrand like the gather's, area pi r^2 known) without bias and
     with a smaller spread than the R2 sequence's first m points (what the final gather used)."""
-    from dcrad.sampling import korobov_generator, lattice, rank1_lattice
+    from dcrad.transport.sampling import korobov_generator, lattice, rank1_lattice
 
     assert [korobov_generator(m) for m in (21, 34, 55, 89, 144)] == [8, 13, 21, 34, 55]
     rng = np.random.default_rng(5)

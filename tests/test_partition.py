@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import scenes
+from dcrad.division.partition import Cell, clip, faces_between, openness, partition, split_planes
 from dcrad.errors import PartitionError
-from dcrad.partition import Cell, clip, faces_between, openness, partition, split_planes
-from dcrad.patches import Patches, triangle_areas
+from dcrad.meshing.patches import Patches, triangle_areas
 from scenes.office import room_rect
 
 ROOM, WALL = 4.0, 0.12
@@ -187,9 +187,9 @@ def test_openness_traces_the_input_triangles(tmp_path, two_sided):
     """The openness traces each input triangle once, rebuilt from its patches (the same corner
     coordinates and winding; of a two-sided surface its front), not the patches, and
     measures the same as tracing the (front) patches."""
-    from dcrad.partition import _openness, _surfaces
+    from dcrad.division.partition import _openness, _surfaces
     from dcrad.pipeline import prepare
-    from dcrad.rays import Tracer
+    from dcrad.transport.rays import Tracer
 
     path = scenes.write_builtin("office", tmp_path, rows=1, cols=2)
     scene, p, _ = prepare(path, 0.3, two_sided=two_sided)
@@ -213,7 +213,7 @@ def test_openness_traces_the_input_triangles(tmp_path, two_sided):
 def test_surfaces_keep_patches_that_tile_no_triangle(office):
     """Clipped pieces of a triangle (a quadrilateral, say) and patches sharing a source by
     chance stay as they are: the surfaces cover the same area."""
-    from dcrad.partition import _surfaces
+    from dcrad.division.partition import _surfaces
 
     part = partition(office, 4)
     for sub, _ in clip(office, part):

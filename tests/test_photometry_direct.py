@@ -14,9 +14,9 @@ import math
 import numpy as np
 import pytest
 
-from dcrad import photometry
-from dcrad.patches import Patches
-from dcrad.rays import Tracer
+from dcrad.meshing.patches import Patches
+from dcrad.outputs import photometry
+from dcrad.transport.rays import Tracer
 
 #: the panel: x, z in [1.5, 2.5] at y = 3, exitance E W/m^2 (grey: lux = 179 E F)
 PANEL = (1.5, 2.5, 1.5, 2.5)
@@ -359,7 +359,7 @@ def test_l_shaped_panel_and_per_triangle_lights(monkeypatch, per_triangle):
     """The panel less its quarter x, z in [2, 2.5] (an L: one polygon of 6 triangles, sampled a
     triangle at a time; or, past lights.MAX_LOOP_VERTICES, a light per triangle) under the
     blocker: exact where lit, 0 in full shadow, the visible part's closed form in the penumbra."""
-    from dcrad import lights
+    from dcrad.transport import lights
 
     if per_triangle:
         monkeypatch.setattr(lights, "MAX_LOOP_VERTICES", 0)
@@ -394,9 +394,9 @@ def test_the_work_plane_is_split_into_rooms_where_walls_part_it(tmp_path):
     (no light passes the wall), each with its own EN 12464-1 statistics; one room when the wall
     has gone."""
     from dcrad.config import SolverConfig
-    from dcrad.passes import solve_to_accuracy
-    from dcrad.photometry import workplane
+    from dcrad.outputs.photometry import workplane
     from dcrad.pipeline import prepare
+    from dcrad.solving.passes import solve_to_accuracy
     from scenes.objwriter import ObjWriter
 
     def rooms(with_wall: bool):

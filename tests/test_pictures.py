@@ -110,7 +110,7 @@ def test_the_views_process_paints_only_where_the_coordinator_holds_no_corner_pai
     from types import SimpleNamespace
 
     from coordinator.jobs import JobManager
-    from dcrad.render import CornerSmoother
+    from dcrad.outputs.render import CornerSmoother
 
     _, patches = floor
     job = SimpleNamespace(ahead=SimpleNamespace(paint="paint"))

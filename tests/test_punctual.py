@@ -23,11 +23,11 @@ import pytest
 import dcrad
 from dcrad.cli import main
 from dcrad.errors import ConfigError, SceneFormatError, SceneValueError
-from dcrad.photometry import EFFICACY, Y_WEIGHTS, direct_irradiance, to_lux, workplane
-from dcrad.punctual import PunctualLight, SpotLight
-from dcrad.rays import Tracer
-from dcrad.render import Camera, draw_marks, marks_in_view
-from dcrad.scene import NO_EMITTERS
+from dcrad.io.scene import NO_EMITTERS
+from dcrad.outputs.photometry import EFFICACY, Y_WEIGHTS, direct_irradiance, to_lux, workplane
+from dcrad.outputs.render import Camera, draw_marks, marks_in_view
+from dcrad.transport.punctual import PunctualLight, SpotLight
+from dcrad.transport.rays import Tracer
 
 I0 = 1000.0  # cd
 LAMP = (2.0, 3.0, 2.0)  # 3 m above the floor of a 4 x 3.2 x 4 m room
@@ -338,7 +338,7 @@ def test_marks_land_where_the_camera_casts_its_rays_and_hide_behind_surfaces():
     pts = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 9.0], [50.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
     np.testing.assert_allclose(marks_in_view(cam, pts), cam.project(pts[[0, 3]])[0])
     # a quad at z = 1 in front of the first point (not the last): it hides the first
-    from dcrad.patches import Patches
+    from dcrad.meshing.patches import Patches
 
     quad = Patches(np.array([[-0.2, -0.2, 1.0], [0.2, -0.2, 1.0], [0.2, 0.2, 1.0], [-0.2, 0.2, 1.0]]),
                    np.array([[0, 1, 2], [0, 2, 3]]), 0.5, 0.0, np.arange(2), np.zeros(2))

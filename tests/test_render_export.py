@@ -1,4 +1,4 @@
-"""Tests for dcrad.render and dcrad.export on small hand-built patch tables."""
+"""Tests for dcrad.outputs.render and dcrad.io.export on small hand-built patch tables."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from dcrad.export import (
+from dcrad.io.export import (
     input_triangle_radiosity,
     write_exr,
     write_glb,
@@ -16,8 +16,8 @@ from dcrad.export import (
     write_png,
     write_radiosity_npz,
 )
-from dcrad.patches import Patches
-from dcrad.render import (
+from dcrad.meshing.patches import Patches
+from dcrad.outputs.render import (
     BACKFACE_COLOR,
     Camera,
     CornerSmoother,
@@ -235,7 +235,7 @@ def test_views_and_mesh_without_the_cached_corners_and_with_the_solves_tracer(tm
     """The outputs drop the table's cached corner positions (Patches.release_corners) and
     reuse the solve's Embree scene: the camera, the images and the GLB are the same, and
     nothing they call rebuilds the cache."""
-    from dcrad.rays import Tracer
+    from dcrad.transport.rays import Tracer
 
     box = _box(open_front=False)
     cam = auto_camera(box, 32, 24)
@@ -349,7 +349,7 @@ def test_glb_is_what_trimesh_exports_for_the_same_mesh(tmp_path, scene, unlit, m
     writes for the same mesh and colours (but the generator), chunk boundaries anywhere."""
     import trimesh
 
-    import dcrad.export as export
+    import dcrad.io.export as export
 
     monkeypatch.setattr(export, "GLB_CHUNK", 7)  # 54 corners: 8 chunks, the last one short
     rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # Y up to Z up
@@ -446,7 +446,7 @@ def test_corner_radiosity_matches_brute_force():
 def test_lux_of_one_patch_is_the_hand_computation():
     """One patch, rho 0.5 grey, B = 10 W/m^2, E = 0: H = (B - E) / rho = 20 W/m^2, and with
     179 lm/W and Y weights summing to 1 for grey, E_v = 3580 lux; L = 179 * 10 / pi cd/m^2."""
-    from dcrad import photometry
+    from dcrad.outputs import photometry
 
     p = Patches(vertices=[[0, 0, 0], [2, 0, 0], [0, 0, -1]], faces=[[0, 1, 2]], rho=np.full((1, 3), 0.5),
                 emission=np.zeros((1, 3)), source=[0], obj=[0], names=["desk/oak"],
@@ -470,7 +470,7 @@ def test_lux_of_one_patch_is_the_hand_computation():
 def test_black_patch_and_work_plane_are_gathered_from_the_solution():
     """Closed box whose every wall has B = 3 W/m^2: whatever direction a gather ray takes it
     sees B = 3, so a black floor (rho 0: B says nothing) and a work plane get H = 3 exactly."""
-    from dcrad import photometry
+    from dcrad.outputs import photometry
 
     p = _box(open_front=False)
     rho = np.full((12, 3), 0.5)
@@ -491,8 +491,8 @@ def test_black_patch_and_work_plane_are_gathered_from_the_solution():
 
 
 def test_false_colour_image_has_its_legend():
-    from dcrad import photometry
-    from dcrad.render import tonemap
+    from dcrad.outputs import photometry
+    from dcrad.outputs.render import tonemap
 
     h, w = 120, 160
     value = np.full((h, w), 250.0)
@@ -514,7 +514,7 @@ def test_false_colour_image_has_its_legend():
 
 
 def test_tonemap_shoulder_rolls_highlights_off():
-    from dcrad.render import SHOULDER
+    from dcrad.outputs.render import SHOULDER
 
     lum = np.array([0.1, 0.5, 0.79, 0.9, 1.0, 2.0, 8.0])
     img = np.repeat(lum[:, None], 3, axis=1)
@@ -529,7 +529,7 @@ def test_tonemap_shoulder_rolls_highlights_off():
 
 
 def test_two_sided_statistics_count_the_lit_side_whatever_the_winding():
-    from dcrad import photometry
+    from dcrad.outputs import photometry
 
     # two floor triangles, the second wound downward; each has a back twin (after the fronts)
     v = [[0, 0, 0], [0, 0, 1], [1, 0, 1], [1, 0, 0]]

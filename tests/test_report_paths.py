@@ -19,8 +19,8 @@ import pytest
 from coordinator import client
 from coordinator.embedded import LocalCluster
 from dcrad.config import DivideConfig, SolverConfig
+from dcrad.outputs.report import TIMINGS
 from dcrad.pipeline import solve_to
-from dcrad.report import TIMINGS
 from scenes.objwriter import ObjWriter
 
 FLIPPED = {"wall_east", "wall_west"}

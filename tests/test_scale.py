@@ -16,14 +16,14 @@ import trimesh
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.patches import Patches
+from dcrad.io.scene import load_scene
+from dcrad.meshing.patches import Patches
 from dcrad.pipeline import default_patch_size
-from dcrad.rays import MISS
-from dcrad.scene import load_scene
-from dcrad.shoot import compact, patch_rays, trace
-from dcrad.shooters import ShooterPool, priority
-from dcrad.snapshots import SnapshotStore
-from dcrad.solver import Solver
+from dcrad.solving.snapshots import SnapshotStore
+from dcrad.solving.solver import Solver
+from dcrad.transport.rays import MISS
+from dcrad.transport.shoot import compact, patch_rays, trace
+from dcrad.transport.shooters import ShooterPool, priority
 
 
 def cornell(tmp_path, size: float = 0.08) -> Patches:
@@ -180,7 +180,7 @@ def test_light_scale_of_an_empty_box_is_cauchys_mean_chord(ext):
     """In a closed convex room the mean distance cosine-distributed rays from its surfaces travel
     is 4V/S (Cauchy's mean chord): the light scale the element size comes from, within 3%
     (16k rays: the chords' spread gives a standard error under 1%)."""
-    from dcrad.mesh import light_scale
+    from dcrad.meshing.mesh import light_scale
 
     box = trimesh.creation.box(extents=ext)
     mfp, seen = light_scale(np.asarray(box.vertices, float), np.asarray(box.faces, np.int64))

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from dcrad.errors import ConfigError, SceneFormatError, SceneValueError
-from dcrad.mesh import AREA_SHARE, SLIVER_EDGES
-from dcrad.patches import triangle_areas
-from dcrad.scene import DEFAULT_RHO, gltf_header, load_scene
+from dcrad.io.scene import DEFAULT_RHO, gltf_header, load_scene
+from dcrad.meshing.mesh import AREA_SHARE, SLIVER_EDGES
+from dcrad.meshing.patches import triangle_areas
 
 MTL = """\
 newmtl white

@@ -423,7 +423,7 @@ def test_z_up_copy_solves_to_the_same_radiosity_and_floor_plan(tmp_path):
 
 def test_up_override_and_bad_up(tmp_path):
     from dcrad.errors import ConfigError
-    from dcrad.scene import load_scene
+    from dcrad.io.scene import load_scene
     from scenes.variants import variant
 
     src = scenes.write_builtin("cornell", tmp_path)
@@ -441,8 +441,8 @@ def test_two_sided_mixed_winding_furnace_identity(tmp_path, rho):
     the inward sides meets rho Phi / ((1 - rho) A) within 1% and the ledger closes (no back
     faces).  One-sided, the same model loses light and warns about flipped normals."""
     from dcrad.config import SolverConfig
-    from dcrad.scene import load_scene
-    from dcrad.solver import Solver
+    from dcrad.io.scene import load_scene
+    from dcrad.solving.solver import Solver
     from scenes.variants import variant
 
     src = scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)
@@ -497,10 +497,10 @@ def test_furnace_illuminance_meets_the_identity(tmp_path):
     """Closed cube, uniform rho: the power incident on all surfaces is Phi / (1 - rho), so the
     area-mean illuminance is 179 Y(Phi) / ((1 - rho) A) lux; photometry.irradiance recovers it
     from B as (B - E) / rho, and black patches gathered from the solution agree."""
-    from dcrad import photometry
     from dcrad.config import SolverConfig
-    from dcrad.scene import load_scene
-    from dcrad.solver import Solver
+    from dcrad.io.scene import load_scene
+    from dcrad.outputs import photometry
+    from dcrad.solving.solver import Solver
 
     rho = 0.6
     p = load_scene(scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)).patches(0.15)
@@ -522,9 +522,9 @@ def test_furnace_illuminance_meets_the_identity(tmp_path):
 def test_auto_camera_stands_in_the_lit_room(tmp_path):
     """Two rooms, one lit: the automatic camera of the closed floor looks at the lit one."""
     from dcrad.config import SolverConfig
-    from dcrad.render import auto_camera
-    from dcrad.scene import load_scene
-    from dcrad.solver import Solver
+    from dcrad.io.scene import load_scene
+    from dcrad.outputs.render import auto_camera
+    from dcrad.solving.solver import Solver
 
     for seed in range(20):  # a seed whose two rooms differ: one lit, one dark
         path = scenes.write_builtin("office", tmp_path / str(seed), rows=1, cols=2, lit_fraction=0.5, seed=seed)
@@ -542,7 +542,7 @@ def test_auto_camera_stands_in_the_lit_room(tmp_path):
 def test_detect_up_cues():
     """Lamps hang high whatever their winding; floors facing ceilings give the axis; a lone
     plane gives no evidence (Y)."""
-    from dcrad.scene import UP_AXES, detect_up
+    from dcrad.io.scene import UP_AXES, detect_up
 
     quad = lambda y, up: [[0, y, 0], [0, y, 1], [1, y, 1]] if up else [[0, y, 0], [1, y, 1], [0, y, 1]]  # noqa: E731
     for lamp_up in (False, True):  # a lamp at the top, facing down or (wrongly) up

@@ -24,7 +24,7 @@ import pytest
 import scenes
 from coordinator.embedded import LocalCluster
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, expected_work, placement, solve_divided, subscene_specs
+from dcrad.division.divide import DivideConfig, expected_work, placement, solve_divided, subscene_specs
 from dcrad.pipeline import prepare
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc

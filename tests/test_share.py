@@ -1,4 +1,4 @@
-"""Shared runs (dcrad.share): k workers share one solve of the whole scene.
+"""Shared runs (dcrad.solving.share): k workers share one solve of the whole scene.
 
 Checked against independent truths: a converged solution with other seeds (the shared run's
 error is what its estimate says, and what a one-process run at the same target reaches), the
@@ -20,12 +20,11 @@ from test_service import submit as submit_job
 import scenes
 from coordinator.embedded import LocalCluster
 from dcrad.config import SolverConfig
-from dcrad.energy import rms_error
-from dcrad.passes import solve_to_accuracy
 from dcrad.pipeline import prepare
-from dcrad.rays import Tracer
 from dcrad.settings import to_pb
-from dcrad.share import (
+from dcrad.solving.energy import rms_error
+from dcrad.solving.passes import solve_to_accuracy
+from dcrad.solving.share import (
     LocalShares,
     Replica,
     Shot,
@@ -35,6 +34,7 @@ from dcrad.share import (
     tally_to_arrays,
     work_shares,
 )
+from dcrad.transport.rays import Tracer
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import arrays_to_chunks
@@ -89,7 +89,7 @@ def test_receiver_shares_split_every_receiver_once(table):
 def test_work_shares_split_every_receiver_once_big_ones_first(table, monkeypatch):
     """A worker's shares halve in size from one round of k to the next (the queue hands out the big
     ones first), and together they are every receiver once, in sorted runs."""
-    import dcrad.share as share
+    import dcrad.solving.share as share
 
     patches, _ = table
     rec = np.flatnonzero(patches.rho.any(axis=1))
@@ -245,7 +245,7 @@ def test_explicit_subscenes_divide_instead(office, tmp_path):
 def test_more_shares_than_receivers_still_solve(tmp_path):
     """A scene with fewer receivers than shares: the empty shares gather nothing, the run meets
     its target and its books close (one shared run's shares may outnumber a small scene's patches)."""
-    from dcrad.patches import Patches
+    from dcrad.meshing.patches import Patches
 
     # a 1 m floor (2 triangles) under a 0.5 m emitter facing it
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1],
@@ -319,9 +319,9 @@ def test_a_worker_s_direct_and_gather_shares_stop_when_asked(table, monkeypatch)
     the direct share between runs of cells, the gather share between batches of receivers, each
     raising GatherStopped rather than returning partial sums a shared run would read as whole;
     not asked, they run as before."""
-    from dcrad import direct as direct_mod
-    from dcrad.direct import GatherStopped
-    from dcrad.share import direct_share, gather_share
+    from dcrad.solving.share import direct_share, gather_share
+    from dcrad.transport import direct as direct_mod
+    from dcrad.transport.direct import GatherStopped
 
     patches, tracer = table
     patches.reset()

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from dcrad.config import SolverConfig
-from dcrad.energy import read_error
-from dcrad.patches import Patches, subdivide
-from dcrad.rays import Tracer, embree_available
-from dcrad.solver import Solver
+from dcrad.meshing.patches import Patches, subdivide
+from dcrad.solving.energy import read_error
+from dcrad.solving.solver import Solver
+from dcrad.transport.rays import Tracer, embree_available
 
 BACKENDS = ["embree", "numpy"] if embree_available() else ["numpy"]
 
@@ -220,7 +220,7 @@ def test_flipped_normals_warning_names_the_object():
 def test_builtin_furnace_file_meets_the_identity(tmp_path, rho):
     """Same identity through the OBJ/MTL path: scenes.furnace_box -> load_scene -> patches."""
     import scenes
-    from dcrad.scene import load_scene
+    from dcrad.io.scene import load_scene
 
     tol = 2e-3
     path = scenes.write_builtin("furnace", tmp_path, rho=rho, emission=3.0)
@@ -242,7 +242,7 @@ def test_tracer_from_shared_vertices_hits_what_the_triangle_soup_hits(tmp_path, 
     shared edges' midpoints and shared vertices, where a different float32 corner would move
     the hit from one triangle to its neighbour."""
     import scenes
-    from dcrad.scene import load_scene
+    from dcrad.io.scene import load_scene
 
     patches = load_scene(scenes.write_builtin("cornell", tmp_path)).patches(0.1)
     rng = np.random.default_rng(5)
@@ -336,7 +336,7 @@ def test_a_ray_budget_coarsens_the_whole_plan_to_fit(office_reference, budget, m
     against an independent reference: 1e6 rays read 6.0% off and 1.5e6 4.0% (before: the
     shooting stopped at the budget with the light half shot, 41% and 21%; bench/RESULTS.md).
     The estimate stays honest, and the shared run over two workers keeps to the budget alike."""
-    from dcrad.share import LocalShares, run_shared
+    from dcrad.solving.share import LocalShares, run_shared
 
     p, ref, ref_noise = office_reference
     p.reset()
@@ -362,7 +362,7 @@ def test_the_final_gather_keeps_to_the_time_limit(office_reference, monkeypatch)
     by the time limit and says so.  (The gather ran whole before: the office took 2.1 s under
     --time-limit 1.5.)  The plan itself is not coarsened for time (a run's seconds are not in
     proportion to its rays): the shooting is the one the 2% target plans."""
-    from dcrad import solver as solve
+    from dcrad.solving import solver as solve
 
     p, ref, ref_noise = office_reference
     p.reset()
@@ -380,8 +380,8 @@ def test_the_final_gather_keeps_to_the_time_limit(office_reference, monkeypatch)
 def test_within_budget_cuts_a_round_to_what_the_budget_leaves():
     """r rays a receiver cost up to r (1 + BRIGHT_SHARE) rays: 1000 rays left for 10 receivers
     fit 83 (82, even); a round that fits, or no budget, is left alone (odd too); none left: 0."""
-    from dcrad.final import BRIGHT_SHARE
-    from dcrad.solver import within_budget
+    from dcrad.solving.solver import within_budget
+    from dcrad.transport.final import BRIGHT_SHARE
 
     assert within_budget(124, 1000, 0, 10) == 82 == 2 * int(1000 / (10 * (1 + BRIGHT_SHARE)) / 2)
     assert within_budget(125, 0, 10, 100) == 125 and within_budget(125, 10**9, 10, 100) == 125
@@ -434,8 +434,8 @@ def test_a_stop_in_the_direct_gather_abandons_it_within_a_run_of_cells(tmp_path,
     gather takes tens of seconds; the first Ctrl-C waited for it), books nothing, and the run stops
     with the emitters' light unshot: B = E, the ledger closed, the report says why."""
     import scenes
-    from dcrad import direct
     from dcrad.pipeline import prepare
+    from dcrad.transport import direct
 
     monkeypatch.setattr(direct, "CHUNK_PAIRS", 2000)  # many runs of cells on a small scene
     _, p, _ = prepare(scenes.write_builtin("office", tmp_path))
@@ -462,7 +462,7 @@ def test_the_final_gather_rounds_top_up_to_the_target_and_keep_the_limits():
     - done more (from the definition, at most 8x the first in all), at most FINAL_ROUNDS; a run that
     meets the target, a halted run and a tol-mode run trace one; under --max-rays the rounds stop
     where two rays no longer fit, and say so."""
-    from dcrad.solver import FINAL_MARGIN, FINAL_ROUNDS, gather_rounds
+    from dcrad.solving.solver import FINAL_MARGIN, FINAL_ROUNDS, gather_rounds
 
     def error(r: int) -> float:
         return 0.02 + 0.02 * math.sqrt(100 / r)
@@ -489,7 +489,7 @@ def test_the_final_gather_rounds_top_up_to_the_target_and_keep_the_limits():
     assert run(SolverConfig(tol=0.01))[0].traced == [100]
     # --max-rays: 1000 + 2 x 10 x r rays after r; what is left / (10 (1 + BRIGHT_SHARE)) even rays
     # fit a round (final.FinalGather's cost of a round)
-    from dcrad.final import BRIGHT_SHARE
+    from dcrad.transport.final import BRIGHT_SHARE
 
     capped, told = run(SolverConfig(accuracy=0.03, max_rays=1000 + 2000 + 1250))
     fit = int(1250 / (10 * (1 + BRIGHT_SHARE)))

@@ -16,11 +16,11 @@ import pytest
 
 import scenes
 from dcrad.config import SolverConfig
-from dcrad.divide import DivideConfig, solve_divided
-from dcrad.energy import rms_error
-from dcrad.patches import Patches
-from dcrad.scene import load_scene
-from dcrad.solver import Solver
+from dcrad.division.divide import DivideConfig, solve_divided
+from dcrad.io.scene import load_scene
+from dcrad.meshing.patches import Patches
+from dcrad.solving.energy import rms_error
+from dcrad.solving.solver import Solver
 
 
 def finite(*arrays):
@@ -127,7 +127,7 @@ def test_stiffness_is_measured_as_the_return_ratio(tmp_path):
     assert np.allclose(st.scale, 1.0 / ((1 - lam) * p.area.sum()), rtol=1e-9)
     assert st.ray_factor == pytest.approx(np.sqrt((1 - cfg.overshoot_min_return) / (1 - lam.max())), rel=1e-9)
     # not stiff: no overshoot and the full ray budget
-    from dcrad.solver import stiffness
+    from dcrad.solving.solver import stiffness
 
     mild = stiffness(np.array([shot, lost, landed, 0.5 * landed]), float(p.area.sum()), cfg)
     assert not mild.scale.any() and mild.ray_factor == 1.0
@@ -137,8 +137,8 @@ def test_stiffness_is_measured_as_the_return_ratio(tmp_path):
 def test_return_tallies_do_not_cancel_between_signs():
     """Rays of both signs: a positive one lands on a rho 0.7 patch, a negative one on a
     rho 0.3 patch, and one of each escapes.  Every signed sum is 0; the magnitudes are not."""
-    from dcrad.rays import Tracer
-    from dcrad.shoot import RayBatch, trace
+    from dcrad.transport.rays import Tracer
+    from dcrad.transport.shoot import RayBatch, trace
 
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1], [2, 0, 0], [3, 0, 0], [2, 0, 1]], float)
     rho = np.array([[0.7] * 3, [0.3] * 3])
@@ -200,7 +200,7 @@ def box_patches(size: float, rho: float, edge: float, emitters: dict) -> Patches
     """Closed cube [0,size]^3, inward normals; emitters: {face centroid test -> exitance}."""
     import trimesh
 
-    from dcrad.patches import subdivide
+    from dcrad.meshing.patches import subdivide
 
     box = trimesh.creation.box(extents=(size, size, size))
     v, f, idx = subdivide(box.vertices + size / 2, box.faces[:, ::-1], edge)

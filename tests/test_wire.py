@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dcrad.energy import Ledger
 from dcrad.errors import ExchangeError
+from dcrad.solving.energy import Ledger
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import (
     CHUNK_BYTES,
@@ -106,8 +106,8 @@ def test_barrier_plan_goal_share_round_trips_and_bad_shares_are_refused():
     outside [0, 1) is refused by name, and a plan with only a share is still a plan."""
     import math
 
-    from dcrad.divide import BarrierPlan
-    from dcrad.solver import Stiffness
+    from dcrad.division.divide import BarrierPlan
+    from dcrad.solving.solver import Stiffness
     from dcrad.wire import plan_fields, plan_from_pb
 
     plan = BarrierPlan(Stiffness.none(), np.zeros(3), 0.0, 0.179)
@@ -122,8 +122,8 @@ def test_barrier_plan_goal_share_round_trips_and_bad_shares_are_refused():
 def test_barrier_plan_ray_share_round_trips_and_a_negative_one_is_refused():
     """A subscene's share of the job's ray budget reaches the worker (a plan with only a share is a
     plan: the worker's doIterations must stop at it); a negative share is refused by name."""
-    from dcrad.divide import BarrierPlan
-    from dcrad.solver import Stiffness
+    from dcrad.division.divide import BarrierPlan
+    from dcrad.solving.solver import Stiffness
     from dcrad.wire import plan_fields, plan_from_pb
 
     plan = BarrierPlan(Stiffness.none(), np.zeros(3), rays_left=123_456_789_012)

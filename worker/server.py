@@ -1,6 +1,6 @@
 """Worker service: load subscenes, iterate them, hand over and accept boundary buffers.
 
-Thin: protocol and bookkeeping only.  The numerics are ``dcrad.divide``; they
+Thin: protocol and bookkeeping only.  The numerics are ``dcrad.division.divide``; they
 run in a thread so the event loop keeps answering health checks.  At start the
 worker registers with the coordinator, retrying with backoff while the
 coordinator is not up, and re-registers every few seconds so a restarted
@@ -19,13 +19,11 @@ import numpy as np
 
 from coordinator.rpc import shutdown, start_server, stop_on_signals
 from dcrad.config import SolverConfig
-from dcrad.direct import GatherStopped
-from dcrad.divide import Subscene, build_subscene, checkpoint_arrays
+from dcrad.division.divide import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
-from dcrad.patches import Patches
-from dcrad.rays import Tracer
+from dcrad.meshing.patches import Patches
 from dcrad.settings import from_pb
-from dcrad.share import (
+from dcrad.solving.share import (
     Shot,
     direct_pilot,
     direct_share,
@@ -34,6 +32,8 @@ from dcrad.share import (
     tally_from_arrays,
     tally_to_arrays,
 )
+from dcrad.transport.direct import GatherStopped
+from dcrad.transport.rays import Tracer
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb
@@ -71,7 +71,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         self.subscenes: dict[tuple[str, int], Subscene] = {}
         self.locks: dict[tuple[str, int], asyncio.Lock] = {}
         self.compute: dict[tuple[str, int], float] = {}  #: s spent in iterate per subscene
-        #: shared runs' patch tables and Embree scenes by job id (dcrad.share), and a lock each:
+        #: shared runs' patch tables and Embree scenes by job id (dcrad.solving.share), and a lock each:
         #: a replica resets and fills the table, so one share of a job runs here at a time
         self.scenes: dict[str, tuple] = {}
         self.scene_locks: dict[str, asyncio.Lock] = {}

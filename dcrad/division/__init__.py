@@ -1,0 +1,1 @@
+"""Divide and conquer: partition, virtual boundaries and twin buffers, subscenes and the barrier loop."""

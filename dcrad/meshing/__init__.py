@@ -1,0 +1,1 @@
+"""The solver's mesh: the patch table, elements, clusters and adaptive refinement."""

@@ -1,0 +1,1 @@
+"""What users read: pictures, photometry in lux, the report and progress."""

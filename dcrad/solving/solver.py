@@ -1,0 +1,1221 @@
+"""Progressive refinement for one (sub)scene: select shooters, shoot, repeat.
+
+``Solver`` owns the patch table, its Embree scene, the random stream and the
+ledger.  ``step()`` shoots the top-K unshot patches in one Embree call;
+``run()`` steps until the residual tolerance, the time limit, the ray budget
+or an external stop request, recording snapshots of B at geometric intervals
+of rays for the error-against-time report.
+
+Ambient overshooting (after Feda and Purgathofer's overshooting, with Cohen et
+al.'s ambient term).  In a stiff scene (rho near 1) plain shooting needs
+ln(tol)/ln(rho) bounces.  Most of that tail is spatially smooth: the
+irradiance still to come is close to uniform.  We estimate it,
+
+    g = q * U / ((1 - lambda) * A_total)      (W/m^2, per channel)
+
+from the signed unshot power U, the share q of shot power that lands on a
+surface, and the return ratio lambda = q * (mean rho where light lands),
+measured so far.  A
+shooter i then shoots dB_i + rho_i * g, the light it will reflect once that
+irradiance arrives, and keeps dB_i = -rho_i * g (negative).  When the light
+does arrive it cancels the negative unshot; what the estimate got wrong is
+still unshot (either sign) and is shot like anything else.  Everything stays
+a shot of real rays, so the ledger closes exactly and the limit is the same;
+only the number of bounces drops.  ``overshoot`` scales g (0: plain).  It
+acts only in stiff scenes (return ratio >= ``overshoot_min_return``): in
+ordinary ones the tail is short, and negative shots would only add noise
+(dim patches could dip below zero before the light they wait for arrives).
+
+The return ratio is measured with magnitudes (``Tally.landed/kept/lost``):
+once rays of both signs fly, signed sums cancel and would make a stiff scene
+look tame.  Stiff scenes also shoot far more power than they emit, E/(1-lambda)
+in all (1000x at rho 0.999), so at a fixed power per ray they spend 1/(1-lambda)
+times the rays of a scene with no reflection, and their noise relative to B
+is far below an ordinary scene's.  With ``stiff_rays`` the power per ray grows
+by sqrt((1-min_return)/(1-lambda)) and the 32-ray floor per shot shrinks by
+the same factor.  The square root is measured, not derived: on the furnace it
+brings the noise relative to B back to that of rho 0.5-0.8 rooms of the same
+mesh (linear scaling left it 1.5-1.8x higher; bench/RESULTS.md).
+
+A divided job overshoots as one scene: light crosses the boundaries, so
+``divide.run_divided`` sums every subscene's tallies at each barrier and
+hands each subscene the job's scale F and the unshot power the others hold
+(``divide.BarrierPlan``).  Twin buffers then carry signed power.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from dcrad.arrays import colsum, put_rows, rowsum, take_rows
+from dcrad.choices import Choice, Choices
+from dcrad.config import SolverConfig
+from dcrad.estimate.noise import Estimate, NoiseTally, bias_ambient, combine, finite
+from dcrad.meshing.patches import Patches
+from dcrad.solving.accuracy import FINAL_BIAS_SHARE, by_accuracy, final_plan, noise_floor, resolve
+from dcrad.solving.energy import Ledger, escaped_light, flipped_normals
+from dcrad.solving.snapshots import SnapshotStore
+from dcrad.transport.direct import (
+    GATHER_MARGIN,
+    MAX_ANALYTIC_RECEIVERS,
+    PILOT_SHARE,
+    AnalyticGather,
+    DirectTally,
+    GatherStopped,
+    analytic_lights,
+    gather_analytic,
+    gather_direct,
+    landing_rays,
+    merge,
+    noise_against_shooting,
+    rescale_to_landed,
+    shadow_rays_for,
+)
+from dcrad.transport.emitters import patch_irradiance, sources_power
+from dcrad.transport.final import BRIGHT_SHARE, FinalGather
+from dcrad.transport.rays import Tracer
+from dcrad.transport.shoot import deposit, landing, patch_rays, ray_offset, trace
+from dcrad.transport.shooters import ShooterPool, pool_size, spatial_order
+
+__all__ = ["Solver", "ReplicaRole", "Snapshot", "Stiffness", "stiffness", "solve", "top_up", "FINAL_ROUNDS"]
+
+#: batches between exact recounts of the ledger's unshot sums; in between they are
+#: kept incrementally from the rows each batch touched (shooters and rows hit)
+RECOUNT_EVERY = 256
+
+
+#: rounds of the final gather at most (the first included; final.FinalGather)
+FINAL_ROUNDS = 3
+#: a top-up round aims at the target with this margin on the rays: part of the noise is what
+#: the gather reads, which more rays do not lower (1.1 left the office at 2.07% for 2%;
+#: 1.4 overshot: 7.3M rays for 1.87%)
+FINAL_MARGIN = 1.25
+
+#: the report's line for a scene whose rho and E are grey
+GATHER_STOPPED = ("direct gather stopped before it finished (a stop request): nothing of it is booked, the "
+                  "emitters' light is left unshot")
+GREY_CHOICE = ("grey scene (every rho and E has equal channels): "
+               "one colour channel is tallied and copied to the other two")
+
+
+@dataclass
+class Snapshot:
+    """State of a run at one moment (B is kept separately in ``Solver.snapshot_B``)."""
+
+    time: float  #: s of wall time since the run started
+    shots: int  #: patches shot so far (the paper's iterations)
+    rays: int  #: rays traced so far
+    residual: float  #: (unshot + in flight) / emitted
+    closure: float  #: ledger imbalance, relative
+    error_rms: float | None = None  #: W/m^2, the estimated RMS error (noise.Estimate.rms)
+    error_refl: float | None = None  #: the same over RMS(B - E) (noise.Estimate.rms_refl)
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Stats:
+    shots: int = 0  #: patches shot
+    rays: int = 0  #: rays traced
+    batches: int = 0  #: Embree calls (divided: summed over subscenes)
+    barriers: int = 0  #: barriers of a divided run (0: one subscene, no barriers)
+    trace_seconds: float = 0.0  #: s spent inside trace (Embree + tally; divided: summed over subscenes)
+    wall_seconds: float = 0.0  #: s of the whole run
+    stopped_by: str = ""  #: tolerance | time_limit | ray_budget | stopped | no_emitters
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class ReplicaRole:
+    """How a shared run's replica (share.py) differs from a run of its own; the defaults are a run of
+    its own.  Kept apart from the solver's state so that only share.run_replica sets it."""
+
+    #: the direct gather of every receiver, done by the shared run's workers (None: gather here)
+    preset_direct: DirectTally | None = None
+    #: ``replicas`` k of them will be averaged, and ``shared_noise`` (W^2/m^4) is the noise mean
+    #: square they share (their direct light, gathered once): the run stops by the error the
+    #: average will have (``Solver.target_error``)
+    replicas: int = 1
+    shared_noise: float = 0.0
+    #: share of the final plan's shooting density this run shoots at: k replicas shoot 1/k each (the
+    #: final gathers read their average's noise), 1 otherwise
+    shoot_share: float = 1.0
+    #: stop where the final gather would start (``stopped_by: final_gather``): the replicas leave it
+    #: to the shared run, which gathers their average split by receivers
+    defer_final: bool = False
+    #: the job's final gather rays per receiver (its own plan is at 1/k of the density; the replicas
+    #: plan, and a budget coarsens, the job's gather: share.run_replica); 0: its own plan's
+    planned_final_rays: int = 0
+
+
+class Solver:
+    """Progressive-refinement radiosity over one patch table.
+
+    patches : the table (its radiosity/unshot arrays are updated in place)
+    config  : SolverConfig
+    tracer  : optional prebuilt Tracer over ``patches.triangles`` (plus boundary
+              primitives after the patches, for subscenes)
+    """
+
+    def __init__(self, patches: Patches, config: SolverConfig | None = None, tracer: Tracer | None = None):
+        self.patches = patches
+        #: settings with the automatic ones filled in (accuracy.resolve: ray density, stop rule)
+        self.config = resolve(config or SolverConfig(), patches.read_units)
+        self.tracer = tracer if tracer is not None else Tracer.mesh(patches)
+        self.rng = np.random.default_rng(self.config.seed)
+        self.ledger = Ledger(emitted=patches.emitted_power + sources_power(patches.sources))
+        #: the light sources that are not patches still to shoot (``shoot_sources``: once, at the start)
+        self._sources_left = list(patches.sources)
+        self.ledger.unshot = patches.unshot_power.copy()
+        self.ledger.unshot_abs = (np.abs(patches.unshot) * patches.area[:, None]).sum(axis=0)
+        #: W (magnitudes) shot by patches, lost (escaped, back faces), landed, kept as unshot:
+        #: the return-ratio tallies (rows; see ``stiffness``)
+        self.tallies = np.zeros((4, 3))
+        self.stats = Stats()
+        self.back_by_obj = np.zeros(max(len(patches.names), 1))
+        emitted = float(self.ledger.emitted.sum())
+        #: W carried by one ray (fixed power per ray)
+        self.power_per_ray = emitted / self.config.rays_per_power if emitted > 0 else 1.0
+        #: W below which a shooter is not worth a ray (round-off of the overshoot arithmetic)
+        self._negligible = 1e-12 * max(emitted, 1e-300)
+        #: what this run leaves out because the scene does not need it (for the report)
+        self.choices = Choices()  #: what the run chose and why (choices.py)
+        self.channels = 1 if patches.is_grey and len(patches) else 3
+        if self.channels == 1:
+            self.choices.add("grey", GREY_CHOICE)
+        #: the stiffness estimate of the last batch that overshot or stretched rays (None: never)
+        self.stiff: Stiffness | None = None
+        self.snapshots: list[Snapshot] = []
+        #: B at each snapshot, float16, at most ``config.snapshot_mb`` MB (snapshots.py)
+        self.snapshot_B: SnapshotStore | list = SnapshotStore()
+        self._next_snapshot = 0
+        self._snapshot_factor = self.config.snapshot_factor  #: squared each time the store is thinned
+        #: the candidates for the top-K shooters (shooters.py); ``full_selection``: sort everything
+        self.pool = ShooterPool(patches, pool_size(len(patches), self.config.max_shooters))
+        self.full_selection = False
+        #: batches between exact recounts of the ledger's unshot sums (0: never)
+        self.recount_every = RECOUNT_EVERY
+        self._since_recount = 0
+        #: the two half-solutions' difference, for the error estimate (noise.py)
+        self.noise = NoiseTally(patches)
+        #: the direct-light gather was tried (it runs once, at the start of ``run``)
+        self.gathered = False
+        #: (n,3) W of direct light each patch received by the gather, and half A's part (None: shot)
+        self.direct_light: tuple[np.ndarray, np.ndarray] | None = None
+        #: gather rays per receiver of the final gather of the indirect light (final.py; 0: none);
+        #: set when the direct light is gathered from exact form factors in accuracy mode
+        self.final_rays = 0
+        #: the final gather was cut to what a limit left (``fit_round``): "ray_budget" or "time_limit"
+        self.budget_cut = ""
+        #: the final gather has run (it runs once, when the shooting has shot nearly all light)
+        self.finalised = False
+        self._final: FinalGather | None = None
+        #: what a shared run's replica does differently (``ReplicaRole``; the default: a run of its own)
+        self.role = ReplicaRole()
+        #: the clusters have settled (``settle``: once a run; a later pass of a blend sets it so that they
+        #: settle on the blend, passes.py)
+        self.settled = False
+        #: rays kept for the final gather under --max-rays (``fit_budget``): the shooting stops short of them
+        self.gather_reserve = 0
+        self._fitted = False  #: ``fit_budget`` has run
+        #: share of the density a first accuracy pass shoots at when its light is all shot (no final
+        #: plan): passes.solve_to_accuracy sets it (``calibrate``); 1: the whole density
+        self.calibration = 1.0
+        #: a later pass of a blend stops by accuracy only once its unshot light's bias (over RMS(B - E))
+        #: is below this (passes.py): the passes' noise averages down in the blend, their bias does not
+        self.bias_cap = math.inf
+        self._fresh_at = -FRESH_EVERY  #: the batch of the last resync ``stop_reason`` asked for
+        self._t0 = clock()
+
+    # == one Embree call ===========================================================
+    def stiffness(self) -> "Stiffness":
+        """This scene's stiffness estimate, from its own return tallies (see ``stiffness``)."""
+        p = self.patches
+        if len(p) == 0:
+            return Stiffness.none()
+        return stiffness(self.tallies, p.total_area, self.config, p.mean_rho)
+
+    def note_stiffness(self, st: "Stiffness") -> "Stiffness":
+        if st.active:
+            self.stiff = st
+        return st
+
+    def stiffness_choice(self) -> list[Choice]:
+        """The report's line on stiffness, when it changed how this run shot."""
+        return [Choice("stiff", stiff_choice(self.stiff, self.config))] if self.stiff is not None else []
+
+    def ambient(self, st: "Stiffness") -> np.ndarray:
+        """(3,) W/m^2: the irradiance still to arrive, as if spread uniformly (see module doc)."""
+        if not st.scale.any():
+            return st.scale
+        return st.scale * (self.ledger.unshot + self.ledger.in_flight)
+
+    def shoot_amounts(self, st: "Stiffness") -> np.ndarray:
+        """(n,3) W/m^2 each patch would shoot now: dB plus its overshoot rho * g."""
+        g = self.ambient(st)
+        if not g.any():
+            return self.patches.unshot
+        return self.patches.unshot + self.patches.rho * g
+
+    def rank(self, power: np.ndarray, min_rays=None, max_shooters=None, ray_factor: float = 1.0):
+        """Top-K shooters by |power| (m,3) W and their ray counts (fixed power per ray).
+
+        min_rays: fewest rays per shooter, scalar or (m,) (default config.min_rays);
+        max_shooters: K (default config.max_shooters); the batch's ray budget caps it too;
+        ray_factor: the power per ray is ``power_per_ray * ray_factor`` (stiff scenes).
+        """
+        cfg = self.config
+        floor = cfg.min_rays if min_rays is None else min_rays
+        scalar = rowsum(np.abs(power))
+        n = len(scalar)
+        if n == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        k = min(max_shooters or cfg.max_shooters, n)
+        # Top-K by power, largest first
+        idx = np.argpartition(-scalar, k - 1)[:k] if k < n else np.arange(n)
+        idx = idx[np.argsort(-scalar[idx], kind="stable")]
+        idx = idx[scalar[idx] > self._negligible]
+        # Rays in proportion to power, clamped; fill the batch's ray budget
+        floor = floor if np.isscalar(floor) else np.asarray(floor)[idx]
+        counts = np.clip(np.ceil(scalar[idx] / (self.power_per_ray * ray_factor)), floor, cfg.max_rays_per_shot)
+        counts = counts.astype(np.int64)
+        # the batch, and what the run's ray budget leaves of it (one shot at least)
+        limit = min(cfg.batch_rays, cfg.max_rays - self.stats.rays) if cfg.max_rays else cfg.batch_rays
+        fits = np.cumsum(counts) <= limit
+        fits[:1] = True
+        return idx[fits], counts[fits]
+
+    def select(self):
+        """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2,
+        share (k,): the part of each one's amount it shoots now, 1 unless capped by max_rays_per_shot).
+
+        The top K come from the shooter pool (shooters.py: the same shooters as a
+        full sort, at O(pool + touched rows) per batch).  While overshooting, every
+        patch's amount moves with the ambient term g, so stiff scenes rank the whole
+        table (one O(patches) pass per batch), as ``full_selection`` does.
+        """
+        p = self.patches
+        st = self.note_stiffness(self.stiffness())
+        floor = st.min_rays(self.config)
+        if self.full_selection or self.ambient(st).any():
+            amounts = self.shoot_amounts(st)
+            power = amounts * p.area[:, None]
+            idx, counts = self.rank(power, floor, ray_factor=st.ray_factor)
+            power, amounts = power[idx], amounts[idx]
+        else:
+            rows = self.candidates(self.config.max_shooters)
+            amounts = p.unshot[rows]
+            power = amounts * p.area[rows, None]
+            sel, counts = self.rank(power, floor, ray_factor=st.ray_factor)
+            idx, power, amounts = rows[sel], power[sel], amounts[sel]
+        # a shooter whose power needs more rays than one shot may have (max_rays_per_shot) shoots
+        # that many at the run's power per ray and keeps the rest unshot for later batches: shot
+        # whole, its rays would carry more power than the density planned, and a lamp of two
+        # triangles would light a room with 2 x 65,536 rays whatever the target
+        full = rowsum(np.abs(power)) / (self.power_per_ray * st.ray_factor)
+        share = np.where(full > counts, counts / np.maximum(full, 1e-300), 1.0)
+        power, amounts = power * share[:, None], amounts * share[:, None]
+        # shoot neighbours after each other: coherent rays for Embree (shooters.spatial_order)
+        order = spatial_order(p, idx)
+        return idx[order], counts[order], power[order], amounts[order], share[order]
+
+    def candidates(self, k: int) -> np.ndarray:
+        """Rows of the shooter pool's top ``k`` (shooters.py; the pool's priorities are rank's,
+        so its top k is rank's top k), in the pool's order."""
+        rows, pr = self.pool.candidates(k, self._negligible)
+        if len(rows) > k:
+            rows = rows[np.sort(np.argpartition(-pr, k - 1)[:k])]
+        return rows
+
+    # -- the ledger's unshot sums, kept incrementally -------------------------------
+    def book_unshot(self, rows: np.ndarray, before: np.ndarray, after: np.ndarray | None = None,
+                    area: np.ndarray | None = None) -> None:
+        """The unshot radiosity of ``rows`` (distinct) changed from ``before`` to ``after`` (k,3)
+        (None: read it): update the sums.  ``area``: the rows' areas (k,) when the caller has them.
+
+        O(k).  ``recount`` redoes them exactly every ``recount_every`` batches.
+        """
+        after = take_rows(self.patches.unshot, rows) if after is None else after
+        area = (take_rows(self.patches.area, rows) if area is None else area)[:, None]
+        led = self.ledger
+        led.unshot = led.unshot + colsum((after - before) * area)
+        led.unshot_abs = led.unshot_abs + colsum((np.abs(after) - np.abs(before)) * area)
+
+    def release(self, rows: np.ndarray, amounts: np.ndarray) -> None:
+        """Shooters ``rows`` (distinct) give up ``amounts`` (k,3) W/m^2 of unshot radiosity."""
+        before = take_rows(self.patches.unshot, rows)
+        after = before - amounts
+        put_rows(self.patches.unshot, rows, after)
+        area = take_rows(self.patches.area, rows)
+        self.book_unshot(rows, before, after, area)
+        self.pool.update(rows, after, area)
+
+    def recount(self) -> None:
+        """The unshot sums and the noise tallies' sums from the whole table (one O(patches) pass
+        each; drops the increments' round-off).
+
+        Called at the start and end of ``run`` and every ``recount_every`` batches.  The
+        noise sums were resynced at every snapshot before (0.3 s each at 1.27M patches,
+        ~40 snapshots in a 15M-ray run); their increments are exact sums of the changes
+        (noise.NoiseTally.commit), so, like the ledger's, they only need the round-off
+        dropped now and then, and whoever changes B outside ``commit`` resyncs
+        (passes.blend).
+        """
+        p = self.patches
+        unshot = p.unshot * p.area[:, None]  # W per patch, signed
+        self.ledger.unshot = colsum(unshot)
+        self.ledger.unshot_abs = colsum(np.abs(unshot))
+        self.noise.resync(p)
+        self._since_recount = 0
+
+    def account(self, shot: np.ndarray, tally, absorbed: np.ndarray, extra_lost=0.0) -> None:
+        """Book one batch: ledger accounts and the return-ratio tallies used by ``ambient``.
+
+        shot: (m,3) W per ray of the rays patches shot (rays that continue light
+        shot elsewhere, like twins', are not counted again).
+        """
+        led = self.ledger
+        led.absorbed = led.absorbed + absorbed
+        led.escaped = led.escaped + tally.escaped
+        led.back_faces = led.back_faces + tally.back_faces + extra_lost
+        self._since_recount += 1
+        if self.recount_every and self._since_recount >= self.recount_every:
+            self.recount()
+        self.tallies += np.stack([colsum(np.abs(shot)), tally.lost + np.abs(extra_lost), tally.landed, tally.kept])
+        self.back_by_obj[: len(tally.back_by_obj)] += tally.back_by_obj[: len(self.back_by_obj)]
+
+    # -- the three phases every kind of step shares -----------------------------------
+    def fire(self, batch, t0: float):
+        """Trace a batch whose sampling began at ``t0``; the time counts as trace time."""
+        tally = trace(self.tracer, batch, self.patches, self.channels)
+        self.stats.trace_seconds += time.perf_counter() - t0
+        return tally
+
+    def crossings(self, batch, tally) -> np.ndarray:
+        """Power (3,) W of hits that leave the books another way (subscenes: boundaries)."""
+        return np.zeros(3)
+
+    def commit(self, batch, tally, shot=None) -> None:
+        """Receivers keep rho of what arrived; book the batch (``shot``: see ``account``).
+
+        The rows hit are gathered once (``shoot.landing``) for the noise tallies, the
+        deposit, the ledger and the pool.
+        """
+        p, hit = self.patches, tally.hit
+        land = landing(p, hit, tally.received)
+        self.noise.commit(p, land, tally.received_a)  # reads the old B of the rows hit
+        absorbed = deposit(p, hit, tally.received, land=land)
+        after = land.unshot_after
+        self.book_unshot(hit, land.unshot, after, land.area)
+        self.pool.update(hit, after, land.area)
+        self.account(batch.power if shot is None else shot, tally, absorbed, self.crossings(batch, tally))
+
+    def counted(self, shots: int, rays: int) -> int:
+        self.stats.shots += shots
+        self.stats.rays += rays
+        self.stats.batches += 1
+        return rays
+
+    def step(self) -> int:
+        """Shoot one batch; return the number of rays traced (0 when nothing is unshot)."""
+        idx, counts, power, amounts, share = self.select()
+        if len(idx) == 0:
+            return 0
+        t0 = time.perf_counter()
+        diff = self.noise.shot_diff(idx, self.patches.area) * share[:, None]
+        batch = patch_rays(self.patches, idx, counts, power, self.rng, diff)
+        tally = self.fire(batch, t0)
+        # Shooters give up what they shot (dB - amount: 0, or -rho*g when overshooting)
+        self.release(idx, amounts)
+        self.noise.shot(idx, 1.0 - share)
+        self.commit(batch, tally)
+        return self.counted(len(idx), len(batch))
+
+    def shoot_sources(self) -> int:
+        """Spend each light source that is not a patch (emitters.py) once, at the start of the run: its
+        direct light gathered exactly onto the patches (``gather_source``) while the direct gather is on
+        (the default), else shot with rays at the run's power per ray.  What lands is deposited,
+        reflected and shot on like any light, and the ledger books it as emitted (``__init__``) and
+        shot here.  Returns the rays traced."""
+        rays = 0
+        while self._sources_left:
+            source = self._sources_left.pop(0)
+            if float(np.abs(source.power()).sum()) <= 0:
+                continue
+            rays += self.gather_source(source) if self.config.direct else self.shoot_source(source)
+        return rays
+
+    def shoot_source(self, source, n: int | None = None) -> int:
+        """Shoot ``source``'s whole power with ``n`` rays (None: at the run's power per ray), in
+        batches of at most ``batch_rays``; returns the rays traced."""
+        if n is None:
+            n = max(int(math.ceil(float(np.abs(source.power()).sum()) / self.power_per_ray)), self.config.min_rays, 2)
+        rays = 0
+        for lo in range(0, n, self.config.batch_rays):
+            m = min(self.config.batch_rays, n - lo)
+            t0 = time.perf_counter()
+            batch = source.rays(m, self.rng)
+            batch.power = batch.power * (m / n)  # each batch an unbiased estimate of its share
+            tally = self.fire(batch, t0)
+            self.commit(batch, tally)
+            rays += self.counted(1 if lo == 0 else 0, m)
+        return rays
+
+    def gather_source(self, source) -> int:
+        """``source``'s direct light on every patch, exactly: the mean of I cos / d^2 over the patch
+        with shadow rays (emitters.patch_irradiance; a point source has no area, so nothing is
+        sampled but the visibility at three points a patch).  How much of its power lands in all, and
+        what escapes or meets back faces, comes from SOURCE_LANDING_RAYS of its own rays at most
+        (the books close to round-off, as for the emitting patches' gather, direct.rescale_to_landed);
+        the half-solutions differ only by those rays' landed total.  Returns the rays traced."""
+        p = self.patches
+        power = np.asarray(source.power(), np.float64)
+        t0 = time.perf_counter()
+        # the receivers (what reflects); the rays' own hits book the rest (rescale_to_landed)
+        rows = np.flatnonzero((p.area > 0) & p.rho.any(axis=1))
+        glazing = None if p.glazing is None else p.glazing.take(rows)
+        received = patch_irradiance(source, p.corners(rows), p.normal[rows], self.tracer, ray_offset(p), glazing)
+        received *= p.area[rows, None]
+        keep = np.flatnonzero(received.any(axis=1))
+        shadow = len(rows) * 3
+        n = int(min(max(float(np.abs(power).sum()) / self.power_per_ray, 1024.0), SOURCE_LANDING_RAYS))
+        batch = source.rays(n, self.rng)
+        shot = self.fire(batch, t0)
+        landed = shot.received.sum(axis=0)
+        landed_a = shot.received_a.sum(axis=0) if shot.received_a is not None else 0.5 * landed
+        share_a = np.where(landed != 0, landed_a / np.where(landed != 0, landed, 1.0), 0.5)
+        got = received[keep]
+        magnitude = np.abs(got)
+        gathered = DirectTally(got, rows[keep], np.zeros(3), np.zeros(3), np.zeros(len(self.back_by_obj)),
+                               np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
+                               (magnitude * p.rho[rows[keep]]).sum(axis=0), np.zeros(3), got * share_a, shadow)
+        tally = rescale_to_landed(gathered, shot, p)
+        if tally is None:  # its rays landed light where no patch faces it: keep the rays' own result
+            self.commit(batch, shot)
+            self.choices.add("direct", f"{source.name}: its light shot, not gathered: its rays landed light where "
+                                       f"the exact gather found none")
+            return self.counted(1, shadow + n)
+        self.commit(None, tally, shot=power[None, :])
+        return self.counted(1, shadow + n)
+
+    def direct_inputs(self, rows: np.ndarray | None = None):
+        """What the direct gather works from: (emitters, their unshot radiosity, their power (W),
+        shadow rays per receiver, the light polygons or None, the FinalPlan or None); None when
+        nothing emits.  Appends the report's line when the scene is too large for exact form factors.
+        ``rows``: the receivers whose light lists decide between exact and sampled gathers (None:
+        all; a shared run's share decides on its own, and its gather reuses the lists)."""
+        p = self.patches
+        cfg = self.config
+        emitters = np.flatnonzero(p.emission.any(axis=1) & p.unshot.any(axis=1))
+        if len(emitters) == 0:
+            return None
+        amounts = p.unshot[emitters].copy()
+        power = amounts * p.area[emitters, None]
+        shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
+        if self.role.preset_direct is not None:  # gathered by a shared run's workers: exact, with a final plan
+            plan = final_plan(cfg, len(p))
+            if plan is None:
+                raise ValueError("a preset direct gather needs accuracy mode with the direct light gathered")
+            return emitters, amounts, power, plan.shadow_rays, None, plan
+        n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
+        lights = analytic_lights(p, emitters, power, n_receivers, rows)
+        if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
+            self.choices.add(
+                "direct", f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
+                                f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
+        plan = final_plan(cfg, len(p)) if lights is not None else None
+        if plan is not None and p.sources:
+            # the final gather re-estimates all but the gathered direct light, and a source's shot
+            # direct light is not in it: it would be laid out as if it were reflected light
+            plan = None
+            self.choices.add("direct", "no final plan: the scene has light sources that are not patches "
+                                       "(emitters.py), whose direct light the final gather cannot tell apart")
+        if plan is not None and p.glazing is not None and p.glazing.mask.any():
+            plan = None  # final.read_hits reads the first surface a ray meets, a pane too
+            self.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
+                                       "see through yet (the shooting and the direct gather do)")
+        if plan is not None:
+            shadow = plan.shadow_rays
+            if cfg.max_rays:
+                # the whole plan (direct, shooting, gather) coarsened alike to fit the budget (the
+                # shooting and gather are fitted again once the direct light is in: ``fit_budget``)
+                f = self.budget_scale(cfg.max_rays - self.stats.rays,
+                                      shadow * n_receivers + self.plan_rays(plan, n_receivers))
+                shadow = max(int(shadow * f), MIN_BUDGET_SHADOW) if f < 1.0 else shadow  # f = 0: none fit
+        return emitters, amounts, power, shadow, lights, plan
+
+    def direct_pilot(self, rows: np.ndarray, rng: np.random.Generator, should_stop=None) -> AnalyticGather | None:
+        """The exact direct gather of the receivers ``rows`` only, after its pilot pass
+        (``AnalyticGather``: ``finish(rate)`` gathers): one worker's share of a shared run
+        (share.py); None when the scene has no exact-form-factor lights or no final plan (a
+        shared run needs both)."""
+        got = self.direct_inputs(rows)
+        if got is None:
+            return None
+        emitters, _, power, shadow, lights, plan = got
+        if lights is None or plan is None:
+            return None
+        return AnalyticGather(self.patches, self.tracer, emitters, power, lights, shadow, rng,
+                              ray_offset(self.patches), self.config.batch_rays, rows, should_stop)
+
+    def gather(self, should_stop=None) -> int:
+        """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.
+        ``should_stop()`` True between two of the gather's batches abandons it: nothing is booked,
+        the emitters keep their light unshot (``run`` then stops).
+
+        The emitters' power is spent: a modest number of their ordinary rays books
+        how much lands, escapes or meets back faces (exactly, as shooting would),
+        and the gather distributes the landed power over the receivers' fronts.
+        Receivers keep rho of it; shooting goes on with the reflected light.  Exact
+        form factors (``gather_analytic``) when the emitters make few light polygons,
+        else next-event estimation (``gather_direct``).  Kept only when it is quieter
+        than shooting the emitters (``noise_against_shooting``), except in accuracy
+        mode with exact form factors: there the run follows an ``accuracy.FinalPlan``
+        (shoot the reflected light coarsely, gather it again at the end, final.py),
+        which needs the direct light gathered.
+
+        ``preset_direct`` (set by a shared run, share.py): the gather of every receiver, done
+        by the workers' shares; this run books it with its own emitter rays and does not
+        count its shadow rays (the shared run counts them once).
+        """
+        p = self.patches
+        cfg = self.config
+        self.gathered = True
+        got = self.direct_inputs()
+        if got is None:
+            return 0
+        emitters, amounts, power, shadow, lights, plan = got
+        preset = self.role.preset_direct
+        # a pilot on a random share of the receivers decides whether gathering beats shooting
+        receivers = np.flatnonzero(p.rho.any(axis=1))
+        budget = cfg.max_rays - self.stats.rays if cfg.max_rays else 0
+        if preset is None and cfg.max_rays and shadow * len(receivers) > DIRECT_BUDGET_SHARE * budget:
+            # the gather's shadow rays would take most of the ray budget (the office at --max-rays
+            # 1e5: 611k rays, all of them the gather's; at 16 shadow rays, its least under a budget,
+            # still 304k): the emitters are shot, within it (``fit_budget`` sets their density)
+            self.choices.add("direct", f"direct light shot, not gathered: {shadow} shadow rays for each of "
+                                f"{len(receivers)} receiving patches are more than {DIRECT_BUDGET_SHARE:.0%} of "
+                                f"the ray budget ({max(budget, 0)} of --max-rays {cfg.max_rays})")
+            return 0
+        size = min(len(receivers), max(64, int(PILOT_SHARE * len(receivers))))
+        pilot = np.sort(self.rng.choice(receivers, size, replace=False))
+        t0 = time.perf_counter()
+        off = ray_offset(p)
+
+        def gather_for(rows: np.ndarray):
+            if lights is not None:
+                return gather_analytic(p, self.tracer, emitters, power, lights, shadow, self.rng, off,
+                                       cfg.batch_rays, rows, should_stop)
+            return gather_direct(p, self.tracer, emitters, power, shadow, self.rng, off, cfg.batch_rays, rows,
+                                 should_stop)
+
+        how = (f"exact form factors to {len(lights)} light polygon(s), visibility from" if lights is not None
+               else "exact form factors (the shared run's direct shares), visibility from" if preset is not None
+               else "next-event estimation,")
+        # the exact form factors gather every receiver at once (their pilot finds penumbrae by
+        # neighbourhood: on a sparse share of the receivers it would find few), then compare
+        def abandoned(rays: int) -> int:  # a stop request ended the gather: nothing of it is booked
+            self.stats.trace_seconds += time.perf_counter() - t0
+            self.choices.add("direct", GATHER_STOPPED)
+            return self.counted(0, rays) if rays else 0
+
+        try:
+            gathered = preset if preset is not None else gather_for(pilot if lights is None else receivers)
+        except GatherStopped:
+            return abandoned(0)
+        shadow_counted = 0 if preset is not None else gathered.rays
+        self.stats.trace_seconds += time.perf_counter() - t0
+        quiet, loud = noise_against_shooting(p, gathered, power, self.power_per_ray)
+        ratio = math.sqrt(quiet / loud) if loud > 0 else math.inf
+        # a run with a final plan keeps its gather: the cheap path (shoot coarsely, gather again)
+        # needs the direct light gathered, and the noise of shooting it is the noise of a far
+        # denser run (the office: 1.2x the noise of shooting at 1.2e7 rays per power, which
+        # took 30.5M rays to 2%; gathered and finished: 4.3M rays for 1.6%)
+        # ... unless the pilot measured the gather so noisy that matching shooting's noise would take
+        # more shadow rays than shooting the emitted power at the run's density takes rays: a lamp
+        # in a fixture (louvres, a trough) is seen partly by most receivers, and its gather can be
+        # 13x noisier than shooting: the light is shot instead
+        equal = shadow * ratio * ratio * len(receivers)
+        if plan is not None and preset is None and equal > cfg.rays_per_power:
+            self.choices.add(
+                "direct", f"direct light shot, not gathered, and no final gather: the gather's {shadow} shadow "
+                                f"rays per receiving patch gave {ratio:.2f}x the noise of shooting; matching it would "
+                                f"take about {equal:.3g} shadow rays, more than the {cfg.rays_per_power:.3g} rays "
+                                f"shooting the emitted power once takes (its {gathered.rays} shadow rays are counted)")
+            self.final_rays = 0
+            return self.counted(0, gathered.rays)
+        if plan is None and not ratio < GATHER_MARGIN:
+            on = f"on a pilot of {len(pilot)} patches" if lights is None else "on every patch"
+            self.choices.add("direct", f"direct light shot, not gathered: {how} {shadow} shadow rays per patch gave "
+                                f"{ratio:.2f}x the noise shooting the emitters would, {on} (its "
+                                f"{gathered.rays} shadow rays are counted)")
+            return self.counted(0, gathered.rays)
+        if lights is None and preset is None:
+            t0 = time.perf_counter()
+            rest = np.setdiff1d(receivers, pilot, assume_unique=True)
+            try:
+                gathered = merge(gathered, gather_for(rest), p)
+            except GatherStopped:
+                return abandoned(gathered.rays)
+            self.stats.trace_seconds += time.perf_counter() - t0
+        # the emitters' own rays: how much of their power lands (the books), not where
+        total = power.sum(axis=1)
+        n_land = landing_rays(shadow, len(gathered.hit), len(emitters), cfg.batch_rays)
+        counts = np.maximum(np.ceil(n_land * total / total.sum()), 2).astype(np.int64)
+        t0 = time.perf_counter()
+        shot = self.fire(patch_rays(p, emitters, counts, power, self.rng), t0)
+        tally = rescale_to_landed(gathered, shot, p)
+        self.release(emitters, amounts)
+        self.noise.shot(emitters)
+        if tally is None:  # the gather missed light the rays found: keep the rays' own result
+            self.commit(None, shot, shot=power)
+            self.choices.add(
+                "direct", "direct light shot: the gather found no light where the emitters' rays landed some")
+            return self.counted(len(emitters), shadow_counted + int(counts.sum()))
+        self.commit(None, tally, shot=power)
+        full, half_a = np.zeros((len(p), 3)), np.zeros((len(p), 3))
+        full[tally.hit], half_a[tally.hit] = tally.received, tally.received_a
+        self.direct_light = (full, half_a)
+        self.choices.add("direct", f"direct light gathered ({how} {shadow} shadow rays per receiving patch, "
+                            f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
+                            f"the emitters book how much of it lands, escapes or meets back faces")
+        if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
+            self.final_rays = self.role.planned_final_rays or plan.final_rays
+            self.power_per_ray = float(self.ledger.emitted.sum()) / (plan.shoot_rays_per_power * self.role.shoot_share)
+            # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
+            self.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * self.role.shoot_share))))
+            density = plan.shoot_rays_per_power * self.role.shoot_share
+            self.choices.add("plan", f"reflected light shot at {density:.3g} rays "
+                                f"per emitted power "
+                                f"(at least {plan.min_rays} rays a shot), then gathered again with "
+                                f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
+        return self.counted(len(emitters), shadow_counted + int(counts.sum()))
+
+    def with_reflections(self, power: np.ndarray) -> tuple[float, float]:
+        """(W, W): the power (3,) and all its reflections, P / (1 - rho) for the scene's mean
+        reflectance rho weighted by the power's channels, and P itself."""
+        power = np.abs(power)
+        total = float(power.sum())
+        rho = float(np.dot(self.patches.mean_rho, power) / max(total, 1e-300))
+        return total / (1.0 - min(rho, 0.95)), total
+
+    def shoot_prediction(self) -> float:
+        """Rays the shooting will take from here: the unshot power and its reflections, a ray per
+        ``power_per_ray`` (the shots' floors come on top: ``BUDGET_FIT`` leaves them room)."""
+        return self.with_reflections(self.ledger.unshot)[0] / max(self.power_per_ray, 1e-300)
+
+    def plan_rays(self, plan, receivers: int) -> float:
+        """Rays a final plan's shooting and gather would take from here (before the direct gather:
+        the reflections of the emitted power are what will be shot)."""
+        everything, emitted = self.with_reflections(self.ledger.emitted)
+        ppr = emitted / (plan.shoot_rays_per_power * self.role.shoot_share)
+        shoot = (everything - emitted) / max(ppr, 1e-300)
+        return shoot + plan.final_rays * receivers * (1.0 + BRIGHT_SHARE) * self.role.shoot_share
+
+    def budget_left(self) -> int | None:
+        """Rays --max-rays leaves this run (None: no budget; a shared run's replica: its 1/k of what
+        the shared direct gather left).  The plan is fitted to the ray budget only (``fit_budget``):
+        a run's seconds are not in proportion to its rays (a coarser shooting makes more shots of
+        fewer rays, each with its own cost: the office 3x3 fitted to 1 s traced 1.1M rays where the
+        plan traced 2.1M), so a time limit only cuts the final gather (``fit_round``)."""
+        cfg = self.config
+        if not cfg.max_rays:
+            return None
+        preset = self.role.preset_direct
+        spent = self.stats.rays + (preset.rays * self.role.shoot_share if preset is not None else 0)
+        return int(cfg.max_rays - spent)
+
+    @staticmethod
+    def budget_scale(left: float, need: float) -> float:
+        """The share of the planned density that fits ``need`` rays in BUDGET_FIT of ``left`` (1: it fits)."""
+        if need <= BUDGET_FIT * left:
+            return 1.0
+        return max(BUDGET_FIT * left, 0.0) / max(need, 1e-300)  # 0: nothing left (the run stops by the budget)
+
+    def calibrate(self) -> None:
+        """As the shooting starts: a first pass that shoots all its light (no final plan) spends
+        ``calibration`` of the run's density.  The density comes from the unknowns' count and a
+        constant (accuracy.rays_for), but the noise a ray leaves differs from scene to scene
+        (noise^2 x density / unknowns: Cornell 0.32, the classroom 0.15, the ice-cream store 0.073):
+        a sparse first pass measures it, and passes.solve_to_accuracy runs an independent second
+        pass at the density that brings the blend to the target when it is needed.  The blend
+        weighs the passes by inverse variance, so the first pass's rays are not lost."""
+        share = self.calibration
+        if not (0.0 < share < 1.0) or self.final_pending() or not by_accuracy(self.config):
+            return
+        self.power_per_ray /= share
+        self.choices.add("density", f"first pass at {share:g} of the density ({self.density():.3g} rays per emitted "
+                            f"power): its measured noise sets the density of a second pass if one is needed")
+
+    def density(self) -> float:
+        """Rays per emitted power this run's shooting spends."""
+        return float(self.ledger.emitted.sum()) / max(self.power_per_ray, 1e-300)
+
+    def fit_budget(self) -> None:
+        """Under --max-rays, in accuracy mode, as the shooting starts: when the shooting to its end and
+        the final gather (if planned) would not fit in what the budget leaves, coarsen both alike
+        (fewer rays a unit of power, fewer gather rays a receiver), so the light is all shot and
+        gathered within the budget.  Without it a small budget stopped the shooting with most of the
+        light unshot: the office 3x3 at 1e6 rays read 41% off (bench/RESULTS.md).  The gather's
+        rays are then kept for it (``gather_reserve``): the shooting stops short of them."""
+        self._fitted = True
+        cfg = self.config
+        left = self.budget_left()
+        if left is None or not by_accuracy(cfg):
+            return
+        receivers = int(self.patches.rho.any(axis=1).sum())
+        per_ray = receivers * (1.0 + BRIGHT_SHARE) * self.role.shoot_share  # this run's share of a gather ray
+        pending = self.final_pending()
+        shoot, gather = self.shoot_prediction(), (self.final_rays * per_ray if pending else 0.0)
+        f = self.budget_scale(left, shoot + gather)
+        if 0.0 < f < 1.0:
+            self.power_per_ray /= f
+            if pending:
+                self.final_rays = max(2 * int(self.final_rays * f / 2), 2)
+            share = f" (this replica's 1/{self.role.replicas} of them)" if self.role.replicas > 1 else ""
+            takes = f"{shoot:.3g} shooting" + (f", {gather:.3g} in the final gather" if pending else "")
+            gives = (f"shooting at {float(self.ledger.emitted.sum()) / self.power_per_ray:.3g} rays per emitted "
+                     f"power" + (f", {self.final_rays} gather rays per receiving patch" if pending else ""))
+            self.choices.add(
+                "budget", f"ray budget: --max-rays {cfg.max_rays} leaves about {left} rays{share}, and the plan "
+                                f"would take about {shoot + gather:.3g} ({takes}): its density is coarsened to "
+                                f"{f:.2g}x ({gives}) to fit")
+        if pending:
+            self.gather_reserve = int(math.ceil(self.final_rays * per_ray))
+
+    def final_pending(self) -> bool:
+        """True while a final gather is planned and has not run."""
+        return bool(self.final_rays) and self.direct_light is not None and not self.finalised
+
+    def final(self, rays: int, should_stop=None) -> int:
+        """A round of the final gather of the indirect light, ``rays`` rays per receiver (final.py);
+        return the rays traced (0: not done: the direct light was shot, or nothing to gather).
+        The first round reads the shot solution; later rounds add rays reading the same one.
+        ``should_stop()`` True ends the round between two batches (FinalGather._trace)."""
+        if self.direct_light is None or rays < 2 or not self.patches.rho.any():
+            return 0
+        self.finalised = True
+        t0 = time.perf_counter()
+        if self._final is None:
+            self._final = FinalGather(self.patches, self.tracer, self.noise.diff, *self.direct_light,
+                                      batch_rays=self.config.batch_rays)
+        b, d, traced, mismatch = self._final.round(rays + rays % 2, self.rng, should_stop)
+        self.stats.trace_seconds += time.perf_counter() - t0
+        self.patches.radiosity, self.noise.diff = b, d
+        self.noise.resync(self.patches)
+        absorbed = float(self.ledger.absorbed.sum())
+        self.choices.set(
+            "final_gather", f"final gather of the indirect light: {2 * self._final.per_half} rays per receiving "
+                            f"patch read the shot solution's reflected light (final.py): the ledger is the "
+                            f"shooting's and B keeps its reflected total; the indirect light landed differs from "
+                            f"the shot by {float(mismatch.sum()) / max(absorbed, 1e-300):.2%} of the absorbed power"
+                            + ("; stopped before its last round reached every receiver (those keep fewer "
+                               "rays, or the shot solution)" if self._final.stopped else ""))
+        return self.counted(0, traced)
+
+    def finish(self, should_stop=None) -> None:
+        """The final gather and its top-up rounds (``gather_rounds``, the driver a shared run uses
+        too): a first round of ``final_rays`` a receiver within the limits, then in accuracy mode more
+        while the settled estimate is above the target."""
+        receivers = int(self.patches.rho.any(axis=1).sum())
+
+        def first_cut(cut: int, by: str) -> None:
+            if by:
+                self.budget_cut = by
+                self.choices.add("budget", budget_cut_note(cut, self.final_rays, by, self.config, self.stats.rays))
+
+        rounds = gather_rounds(self.final_rays, self.config, receivers,
+                               spent=lambda: (self.stats.rays, self.elapsed()),
+                               trace=lambda rays: self.final(rays, should_stop),
+                               error=self.settled_target_error,
+                               halted=lambda: self._final is None or self._final.stopped, on_first=first_cut)
+        self.budget_cut = rounds.by or self.budget_cut
+
+    # == the loop ==================================================================
+    def elapsed(self) -> float:
+        return clock() - self._t0
+
+    def residual(self) -> float:
+        return self.ledger.residual()
+
+    def estimate(self) -> Estimate:
+        """The estimated RMS error of B now, as the target holds it (per input triangle, the elements
+        within ``noise.SHOWN_SLACK`` of it), with ``triangles_refl`` and ``elements_refl`` beside it:
+        noise and unshot bias (noise.py); O(1)."""
+        p = self.patches
+        ambient = bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho)
+        est = combine(self.noise.sums(), ambient, self.noise.pool_bias)
+        est.triangles_refl = finite(combine(self.noise.triangle_sums(), ambient, self.noise.pool_bias).rms_refl)
+        est.elements_refl = finite(combine(self.noise.element_sums(), ambient, self.noise.pool_bias).rms_refl)
+        return est
+
+    def unshot_bias(self) -> float:
+        """The estimate's bias from the light still unshot alone (the clusters' spread left out), over
+        RMS(B - E); 0 while ``bias_cap`` is not set (not needed)."""
+        if not math.isfinite(self.bias_cap):
+            return 0.0
+        p = self.patches
+        return combine(self.noise.sums(), bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho),
+                       0.0).bias_refl
+
+    def target_error(self, est: Estimate | None = None) -> float:
+        """The error the accuracy target is held to, over RMS(B - E): the estimate's, or for a shared
+        run's replica the estimate of the average of ``replicas`` such runs (the shared noise stays,
+        the rest falls by 1/k in the mean square, the bias stays)."""
+        est = est if est is not None else self.estimate()
+        if self.role.replicas <= 1:
+            return est.rms_refl
+        sums = self.noise.sums()
+        refl_ms = max(sums.r2, 0.0) / max(sums.area, 1e-300)  # RMS(B - E)^2, the estimate's reference
+        if refl_ms <= 0:
+            return est.rms_refl
+        noise = est.noise_refl ** 2
+        # shared_noise is per patch: read it as the target does, like the rest of the noise
+        shared = min(self.role.shared_noise * self.noise.factors[0] / refl_ms, noise)
+        return math.sqrt(shared + (noise - shared) / self.role.replicas + est.bias_refl ** 2)
+
+    def settled_target_error(self) -> float:
+        """``target_error`` once a clustered table's clusters have settled (NoiseTally.settle: those
+        whose patches' light differs beyond their noise are undone, the kept ones' spread is bias):
+        the estimate the report gives, which a stop by accuracy must meet (office3 and the ice-cream
+        store stopped at 1.99% and reported 2.08% and 2.02%).  O(patches) when clustered."""
+        self.settle()
+        return self.target_error()
+
+    def settle(self) -> tuple[int, int]:
+        """Settle a clustered table's clusters once a run (NoiseTally.settle; each settling undoes some
+        uniform clusters by chance, 5% at its margin, so not at every stop check): (clusters kept,
+        undone in all)."""
+        if self.noise.pooled and not self.settled:
+            self.settled = True
+            return self.noise.settle(self.patches)
+        kept = len(np.unique(self.patches.cluster[self.patches.cluster >= 0]))
+        return kept, self.noise.undone
+
+    def snapshot(self, force: bool = False) -> None:
+        """Record a snapshot when the ray count passed the next geometric mark."""
+        if not force and self.stats.rays < self._next_snapshot:
+            return
+        if self.snapshots and self.snapshots[-1].rays == self.stats.rays:
+            return
+        est = self.estimate()
+        self.snapshots.append(
+            Snapshot(self.elapsed(), self.stats.shots, self.stats.rays, self.residual(), self.ledger.closure(),
+                     finite(est.rms), finite(est.rms_refl))
+        )
+        self.snapshot_B.append(self.patches.radiosity)
+        cap = self.config.snapshot_mb * 2**20
+        if isinstance(self.snapshot_B, SnapshotStore) and self.snapshot_B.nbytes > cap and len(self.snapshots) > 2:
+            keep = self.snapshot_B.thin()
+            self.snapshots = [self.snapshots[i] for i in keep]
+            self._snapshot_factor *= self._snapshot_factor
+        first = max(self.config.min_rays, 1024)
+        self._next_snapshot = max(first, int(math.ceil(self.stats.rays * self._snapshot_factor)))
+
+    def stop_reason(self) -> str:
+        cfg = self.config
+        if float(self.ledger.emitted.sum()) <= 0.0:
+            return "no_emitters"
+        if self.residual() <= cfg.tol:
+            return "tolerance"
+        if by_accuracy(cfg):
+            est = self.estimate()
+            # the estimate's bias layout and a clustered table's factors come from the last resync
+            # (noise.py): near a stop, read them fresh, at most every FRESH_EVERY batches (O(n) each):
+            # on the first batch's factors a closed cube ran on past its target and then ended on its
+            # noise floor at 1.1% of a 2% target
+            near = self.target_error(est) <= NEAR_STOP * cfg.accuracy or noise_floor(est, cfg.accuracy)
+            if near and self.stats.batches - self._fresh_at >= FRESH_EVERY:
+                self._fresh_at = self.stats.batches
+                self.noise.resync(self.patches)
+                est = self.estimate()
+            shot = self.residual() <= UNSHOT_SHARE * cfg.accuracy or self.final_pending()
+            if (shot and self.target_error(est) <= cfg.accuracy and self.unshot_bias() <= self.bias_cap
+                    and self.settled_target_error() <= cfg.accuracy):
+                return "accuracy"
+            if self.final_pending():
+                if est.bias_refl <= FINAL_BIAS_SHARE * cfg.accuracy:
+                    return "final_gather"  # the light is nearly all shot: gather it (``run``)
+            elif shot and noise_floor(est, cfg.accuracy):
+                return "noise_floor"
+        if cfg.time_limit and self.elapsed() >= cfg.time_limit:
+            return "time_limit"
+        if self.gather_reserve and self.final_pending():
+            left = self.budget_left()
+            if left is not None and left <= self.gather_reserve:
+                return "final_gather"  # what is left of the budget is the gather's (``fit_budget``)
+        if cfg.max_rays and self.stats.rays >= cfg.max_rays:
+            return "ray_budget"
+        return ""
+
+    def run(self, on_progress=None, should_stop=None) -> Stats:
+        """Step until a stop criterion; ``should_stop()`` True ends the run cleanly.
+
+        on_progress(solver) is called after every batch.
+        """
+        self._t0 = clock() - self.stats.wall_seconds
+        self.pool.invalidate()  # the table may have changed since the last run
+        self.recount()
+        self.shoot_sources()
+        self.snapshot(force=True)
+        # a preset gather (a shared run's) is booked even when stopping: it is done, and cheap to book
+        if self.config.direct and not self.gathered and (self.role.preset_direct is not None
+                                                         or not (should_stop is not None and should_stop())):
+            self.gather(should_stop)
+            self.snapshot()
+            if on_progress is not None:
+                on_progress(self)
+        if not self._fitted:
+            self.calibrate()
+            self.fit_budget()
+        while True:
+            reason = self.stop_reason()
+            if not reason and should_stop is not None and should_stop():
+                reason = "stopped"
+            if reason:
+                break
+            if self.step() == 0:
+                reason = "tolerance"
+                break
+            self.snapshot()
+            if on_progress is not None:
+                on_progress(self)
+        if (reason == "final_gather" or (self.final_pending() and reason == "tolerance")) and not self.role.defer_final:
+            self.finish(should_stop)
+            if self._final is not None and self._final.stopped:
+                reason = "stopped"
+            elif by_accuracy(self.config):
+                met = self.settled_target_error() <= self.config.accuracy
+                reason = "accuracy" if met else self.budget_cut or "noise_floor"
+        self.recount()
+        self.snapshot(force=True)
+        self.stats.stopped_by = reason
+        self.choices.drop("stiff")
+        self.choices.extend(self.stiffness_choice())
+        self.stats.wall_seconds = self.elapsed()
+        return self.stats
+
+    # == reporting =================================================================
+    def eta(self) -> float:
+        """Seconds to the tolerance, from the log-residual slope of recent snapshots (nan if unknown)."""
+        snaps = [s for s in self.snapshots[-6:] if s.residual > 0]
+        now = self.residual()
+        if len(snaps) < 2 or now <= 0:
+            return float("nan")
+        a, b = snaps[0], snaps[-1]
+        if b.time <= a.time or b.residual >= a.residual:
+            return float("nan")
+        rate = math.log(a.residual / b.residual) / (b.time - a.time)
+        goal = self.config.tol
+        if by_accuracy(self.config):
+            # the bias falls with the residual; the estimate meets the target once
+            # sqrt(noise^2 + bias^2) <= accuracy (nan when the noise alone is above it)
+            est = self.estimate()
+            room = self.config.accuracy ** 2 - est.noise_refl ** 2
+            if room <= 0 or not math.isfinite(est.bias_refl):
+                return float("nan")
+            goal = now * min(1.0, math.sqrt(room) / max(est.bias_refl, 1e-300))
+        return max(0.0, math.log(now / max(goal, 1e-300)) / rate)
+
+    def warnings(self) -> list[str]:
+        """Warnings about the run: flipped normals (back-face share of shot power), escaped light."""
+        return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
+                                                                                                  self.patches)
+
+
+#: most rays a light source that is not a patch shoots to book where its gathered light lands in all
+#: (``Solver.gather_source``): they set the total's noise (under 0.2% of the power at this count when
+#: a tenth of it escapes), not where it lands
+SOURCE_LANDING_RAYS = 1 << 18
+#: the solver's clock (``time.perf_counter``; a test may run it on a clock of its own)
+clock = time.perf_counter
+
+#: a run under --max-rays plans its shooting and gather to this share of what the budget leaves
+#: (``Solver.fit_budget``): the rest is for the shots' ray floors and the prediction's error
+BUDGET_FIT = 0.85
+#: fewest shadow rays per receiver of a direct gather coarsened to fit --max-rays: below about 16
+#: the exact gather's own floor (its pilot, a ray a half per receiver-light pair) dominates (the
+#: office: 271k rays at 4, 276k at 8, 304k at 16, 611k at 32; Cornell 97k, 199k, 405k, 816k)
+MIN_BUDGET_SHADOW = 16
+#: the direct gather takes at most this share of a --max-rays budget; else the emitters are shot
+DIRECT_BUDGET_SHARE = 0.5
+#: batches between the resyncs ``stop_reason`` asks for near a stop (clustered tables), and how near:
+#: the estimate on the last factors within this many times the target (a cluster of 16 patches
+#: divides their noise's square by up to 16)
+FRESH_EVERY = 16
+NEAR_STOP = 4.0
+#: a run that shoots its light stops (by accuracy, or on its noise floor) only once its unshot share
+#: of the emitted power (the residual) is under this share of the target, whatever the estimate's
+#: bias reads: the bias is laid out like the irradiance smoothed over a free path, which cannot see
+#: light still bouncing inside a lamp's housing (office3 stopped with 1.8% unshot, its lamp
+#: interiors 2% dark, 87% of its error, the estimate at 0.6x the error measured)
+UNSHOT_SHARE = 0.25
+
+
+def budget_cut_note(cut: int, planned: int, limit: str, config: SolverConfig, used: int) -> str:
+    """The report's line on a final gather cut by ``fit_round`` to what ``limit`` ("ray_budget" or
+    "time_limit") of ``config`` left (in process and shared runs)."""
+    kind, flag = (("time limit", f"--time-limit {config.time_limit:g}") if limit == "time_limit" else
+                  ("ray budget", f"--max-rays {config.max_rays}"))
+    return (f"{kind}: the final gather cut to {cut} rays per receiving patch (planned {planned}), what "
+            f"{flag} leaves after {used} rays" + ("; not gathered: B is the shot solution"
+                                                  if cut < 2 else ""))
+
+
+def fit_round(rays: int, config: SolverConfig, used: int, elapsed: float, receivers: int) -> tuple[int, str]:
+    """A final-gather round of ``rays`` a receiver cut to what --max-rays leaves after ``used`` rays
+    and what --time-limit leaves after ``elapsed`` s at the run's rate so far (``used / elapsed``
+    rays a second), and the limit that cut it: "ray_budget", "time_limit" or "" (none did)."""
+    got, by = within_budget(rays, config.max_rays, used, receivers), "ray_budget"
+    if config.time_limit and used and elapsed > 0:
+        left = used / elapsed * (config.time_limit - elapsed)
+        timed = within_budget(rays, used + int(max(left, 0.0)), used, receivers)
+        if timed < got:
+            got, by = timed, "time_limit"
+    return got, by if got < rays else ""
+
+
+@dataclass
+class Rounds:
+    """The final gather's rounds as ``gather_rounds`` ran them: rays a receiver of each, and the limit
+    that cut one ("ray_budget", "time_limit" or "": none did)."""
+
+    traced: list[int]
+    by: str
+
+
+def gather_rounds(first: int, config: SolverConfig, receivers: int, spent, trace, error, halted,
+                  on_first=None) -> Rounds:
+    """The final gather's rounds, one driver for a run in one process (Solver.finish) and a shared
+    run (share.run_shared): a first round of ``first`` rays a receiver cut to what the limits leave
+    (fit_round; ``on_first(rays, limit)`` is told before it is traced); then, in accuracy mode, while
+    ``error()`` is above the target, a top-up round (top_up: (error / target)^2 x FINAL_MARGIN rays a
+    receiver in all, at most 8x the first), at most FINAL_ROUNDS rounds in all, none once
+    ``halted()`` (a stop was asked, or a round stopped before it reached every receiver) and none the
+    limits leave no two rays for (a passed time limit leaves none).  ``spent()`` -> (rays traced so
+    far, seconds so far); ``trace(rays)`` traces a round of that many (even) rays a receiver."""
+    rays, elapsed = spent()
+    more, by = fit_round(first + first % 2, config, rays, elapsed, receivers)
+    if on_first is not None:
+        on_first(more, by)
+    done: list[int] = []
+    while more >= 2:
+        trace(more)
+        done.append(more)
+        if len(done) >= FINAL_ROUNDS or not by_accuracy(config) or halted():
+            break
+        err = error()
+        if err <= config.accuracy:
+            break
+        want = top_up(sum(done), first, err, config.accuracy)
+        rays, elapsed = spent()
+        more, cut = fit_round(want + want % 2, config, rays, elapsed, receivers)
+        by = by or cut
+    return Rounds(done, by)
+
+
+def within_budget(rays: int, max_rays: int, used: int, receivers: int) -> int:
+    """Gather rays per receiver of a final round (``rays``) cut to what ``max_rays`` leaves after
+    ``used``, even (0: not two fit).  A round of r rays traces r cosine rays a receiver and at
+    most BRIGHT_SHARE x r area samples of the bright set (final.FinalGather)."""
+    fit = int((max_rays - used) / (max(receivers, 1) * (1.0 + BRIGHT_SHARE))) if max_rays else rays
+    return rays if fit >= rays else max(fit - fit % 2, 0)
+
+
+def top_up(done: int, first: int, err: float, target: float) -> int:
+    """Gather rays per receiver of the next top-up round of a final gather that has ``done`` of them
+    (``first`` in its first round) and reads ``err`` for ``target``: (err / target)^2 x FINAL_MARGIN
+    of them in all, as if the noise were all the gather's sampling, at most 8x the first round's."""
+    more = int(math.ceil(done * ((err / target) ** 2 * FINAL_MARGIN - 1.0)))
+    return min(more, 8 * first - done)
+
+
+@dataclass(frozen=True)
+class Stiffness:
+    """How a (sub)scene shoots now: the ambient scale and the ray budget factor.
+
+    scale      : (3,) 1/m^2, F with ambient irradiance g = F * U (U: signed
+                 unshot power, W); zeros: no overshooting
+    ray_factor : the power per ray is multiplied by this (>= 1; 1 unless stiff)
+    ret        : the return ratio it was estimated from
+    """
+
+    scale: np.ndarray
+    ray_factor: float = 1.0
+    ret: float = 0.0  #: the measured return ratio lambda (largest channel)
+
+    @staticmethod
+    def none() -> "Stiffness":
+        return Stiffness(np.zeros(3), 1.0)
+
+    @property
+    def active(self) -> bool:
+        """True when it changes how the scene shoots (overshoot or a larger power per ray)."""
+        return bool(self.scale.any()) or self.ray_factor != 1.0
+
+    def min_rays(self, config: SolverConfig) -> int:
+        """Fewest rays per patch shot: the floor shrinks with the ray factor.
+
+        The floor spreads a weak shot over the hemisphere; in a stiff scene every
+        patch is shot many times (overshoot, then corrections), each with a new
+        lattice, so its directions add up over the run.  A full floor there made
+        each sweep cost 32 rays per patch for power worth one.
+        """
+        return max(1, int(math.ceil(config.min_rays / self.ray_factor)))
+
+
+def stiff_choice(st: Stiffness, config: SolverConfig) -> str:
+    """The report's line on what a stiff scene changed."""
+    what = []
+    if st.scale.any():
+        what.append("ambient overshooting")
+    if st.ray_factor != 1.0:
+        what.append(f"power per ray x{st.ray_factor:.3g} and at least {st.min_rays(config)} rays a patch shot")
+    return f"stiff scene (return ratio {st.ret:.4f}): " + ", ".join(what)
+
+
+def stiffness(tallies: np.ndarray, area: float, config: SolverConfig, mean_rho: np.ndarray | None = None) -> Stiffness:
+    """Estimate how stiff a scene is from its return tallies and choose how to shoot.
+
+    tallies: (4,3) W (magnitudes) shot by patches, lost (escaped or back faces),
+    landed and kept (``Solver.tallies``, summed over subscenes for a divided
+    job); area: m^2 of all patches.  The share of shot power that lands is
+    q = 1 - lost / shot (light crossing a boundary is still on its way), and the
+    return ratio lambda = q * kept / landed (q times the mean rho where light
+    lands).  Before the first shot ``mean_rho`` stands in for lambda (a closed
+    scene); without it, nothing is assumed.
+
+    Stiff (lambda >= overshoot_min_return): F = overshoot * q / ((1-lambda) * A),
+    and with ``stiff_rays`` the power per ray grows by sqrt((1-min_return)/(1-lambda)).
+    """
+    shot, lost, landed, kept = np.asarray(tallies, np.float64)
+    if area <= 0:
+        return Stiffness.none()
+    if shot.sum() > 0 and landed.sum() > 0:
+        q = np.clip(1.0 - lost / np.maximum(shot, 1e-300), 0.0, 1.0)
+        lam = q * kept / np.maximum(landed, 1e-300)
+    elif shot.sum() > 0:
+        return Stiffness.none()  # nothing has landed: an open scene
+    elif mean_rho is not None:
+        q, lam = np.ones(3), np.asarray(mean_rho, np.float64)
+    else:
+        return Stiffness.none()
+    lam = np.clip(lam, 0.0, 1.0 - 1e-6)
+    if lam.max() < config.overshoot_min_return:
+        return Stiffness.none()  # not stiff: the tail is short, plain shooting keeps B >= 0
+    factor = math.sqrt((1.0 - config.overshoot_min_return) / (1.0 - float(lam.max()))) if config.stiff_rays else 1.0
+    return Stiffness(config.overshoot * q / ((1.0 - lam) * area), max(1.0, factor), float(lam.max()))
+
+
+def solve(patches: Patches, config: SolverConfig | None = None, **run_kwargs) -> Solver:
+    """Convenience: build a Solver, run it, return it."""
+    solver = Solver(patches, config)
+    solver.run(**run_kwargs)
+    return solver

@@ -1,0 +1,1 @@
+"""Light transport: rays, sampling, shooting, the direct and final gathers, emitters and surfaces."""
