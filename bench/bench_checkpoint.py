@@ -28,7 +28,8 @@ import numpy as np
 import scenes
 from coordinator.store import CheckpointWriter, ChunkFile, JobStore, cell_file
 from dcrad.config import SolverConfig
-from dcrad.division.divide import DivideConfig, build_subscenes, checkpoint_arrays, run_divided
+from dcrad.division.divide import DivideConfig, build_subscenes, run_divided
+from dcrad.division.subscene import checkpoint_arrays
 from dcrad.pipeline import prepare
 from dcrad.wire import arrays_to_chunks
 

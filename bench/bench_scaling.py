@@ -9,7 +9,7 @@ and out over its one link), with 4 round trips per barrier (iterate, collect, de
 checkpoint).  Predicted time on k machines = sum over barriers of (critical path +
 exchange); speed-up = the one-process solve's time / that; efficiency = speed-up / k.
 Partition, clipping and loading are left out of the prediction (printed separately).
-A second table puts k subscenes on m machines (``--machines``): kept where ``divide.placement``
+A second table puts k subscenes on m machines (``--machines``): kept where ``placement.placement``
 puts them by expected work (as the coordinator does), or assigned afresh at each barrier by the
 power each holds, paying for the moves; the critical path is then the busiest machine's.
 
@@ -35,15 +35,9 @@ import numpy as np
 import dcrad.division.divide
 import scenes
 from dcrad.config import DivideConfig, SolverConfig
-from dcrad.division.divide import (
-    SequentialExecutor,
-    checkpoint_arrays,
-    expected_work,
-    placement,
-    run_divided,
-    subscene_arrays,
-    subscene_specs,
-)
+from dcrad.division.divide import SequentialExecutor, run_divided, subscene_specs
+from dcrad.division.placement import expected_work, placement
+from dcrad.division.subscene import checkpoint_arrays, subscene_arrays
 from dcrad.pipeline import prepare
 from dcrad.solving.solver import Solver
 
@@ -82,7 +76,7 @@ def on_machines(per: np.ndarray, m: int, pending: np.ndarray, moving: np.ndarray
 
 
 def placed(per: np.ndarray, slots: list[int], m: int) -> np.ndarray:
-    """(barriers,) s: k subscenes on m machines, each kept on its slot (``divide.placement``)."""
+    """(barriers,) s: k subscenes on m machines, each kept on its slot (``placement.placement``)."""
     load = np.zeros((m, per.shape[1]))
     for i, j in enumerate(slots):
         load[j] += per[i]
@@ -229,7 +223,7 @@ def main(argv=None) -> int:
             print(f"{'':45}{k:3d} {m:3d} {pred_p:8.2f} {t1 / pred_p:8.2f} {t1 / pred_p / m:5.0%} {crit_p:7.2f} "
                   f"{mrays:6.1f} {pred_d:9.2f} {t1 / pred_d:8.2f} {t1 / pred_d / m:5.0%} {moves:7.2f} {ideal:7.2f} "
                   f"{t1 / ideal / m:5.0%}")
-        print("placed: each subscene kept on the machine divide.placement gives it by expected work (its lamps and "
+        print("placed: each subscene kept on the machine placement.placement gives it by expected work (its lamps and "
               "patches; what the coordinator does), plus the exchange; crit s / Mrays: its critical path summed "
               "over barriers, in CPU s and rays; dynamic: assigned afresh at each barrier by the W each subscene "
               "holds (unshot and in flight), plus the exchange and the moves (a moved subscene's checkpoint over "

@@ -23,7 +23,8 @@ from pathlib import Path
 from coordinator.embedded import _read_port
 from coordinator.remote import RemoteSubscene, WorkerPool
 from dcrad.config import DivideConfig, SolverConfig
-from dcrad.division.divide import expected_work, placement, subscene_specs
+from dcrad.division.divide import subscene_specs
+from dcrad.division.placement import expected_work, placement
 from dcrad.pipeline import prepare, resolve_scene
 
 TABLE = {"vertices", "faces", "rho", "emission", "source", "obj", "names", "radiosity", "unshot", "twin"}

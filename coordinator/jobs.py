@@ -30,15 +30,8 @@ import numpy as np
 
 from dcrad.choices import Choice
 from dcrad.config import SolverConfig, unused_divide_note
-from dcrad.division.divide import (
-    DivideConfig,
-    assemble,
-    check_subscenes,
-    expected_work,
-    placement,
-    run_divided,
-    subscene_specs,
-)
+from dcrad.division.divide import DivideConfig, assemble, run_divided, subscene_specs
+from dcrad.division.placement import check_subscenes, expected_work, placement
 from dcrad.errors import ConfigError, DcradError
 from dcrad.outputs import render
 from dcrad.outputs.report import residual_estimate
@@ -378,7 +371,7 @@ class JobManager:
         display = None
         try:
             # subscenes on workers by expected work (their lamps' power and patch count: LPT,
-            # divide.placement), so no worker carries the two brightest cells; results do not
+            # placement.placement), so no worker carries the two brightest cells; results do not
             # depend on it, only which worker waits at a barrier
             workers = self.pool.live()
             slots = placement([expected_work(s.patches) for s in subs], len(workers)) if workers else []

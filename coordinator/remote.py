@@ -30,7 +30,7 @@ import grpc
 import numpy as np
 
 from dcrad.division.boundary import boundary_mode
-from dcrad.division.divide import SubsceneState, subscene_arrays
+from dcrad.division.subscene import SubsceneState, subscene_arrays
 from dcrad.errors import DcradError
 from dcrad.estimate.noise import NoiseSums
 from dcrad.settings import to_pb

@@ -26,7 +26,7 @@ from types import SimpleNamespace
 
 from dcrad.choices import Choice
 from dcrad.config import BOUNDARY_MODES, DivideConfig, SolverConfig
-from dcrad.division.divide import SUBSCENES_PER_WORKER
+from dcrad.division.placement import SUBSCENES_PER_WORKER
 from dcrad.errors import DcradError
 from dcrad.outputs.progress import error_text
 from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values

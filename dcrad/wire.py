@@ -14,7 +14,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from dcrad.division.divide import BarrierPlan
+from dcrad.division.subscene import BarrierPlan
 from dcrad.errors import ExchangeError
 from dcrad.solving.energy import ACCOUNTS, MAGNITUDES, Ledger
 from dcrad.solving.solver import Stiffness
@@ -143,7 +143,7 @@ def ledger_from_pb(msg: pb.Ledger) -> Ledger:
 
 
 def plan_fields(plan) -> dict:
-    """IterateRequest fields for a ``dcrad.division.divide.BarrierPlan`` (None: none, shoot plainly)."""
+    """IterateRequest fields for a ``dcrad.division.subscene.BarrierPlan`` (None: none, shoot plainly)."""
     if plan is None:
         return {}
     return {"ambient_scale": [float(x) for x in plan.stiffness.scale],

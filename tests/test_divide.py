@@ -119,7 +119,8 @@ def test_boundary_across_an_empty_box(tmp_path, mode):
 @pytest.mark.parametrize("mode", ["binned", "exact"])
 def test_checkpoint_resumes_bit_identically(office, mode):
     """A subscene rebuilt from its arrays and a barrier checkpoint continues exactly as the original."""
-    from dcrad.division.divide import build_subscene, build_subscenes, checkpoint_arrays, run_divided, subscene_arrays
+    from dcrad.division.divide import build_subscenes, run_divided
+    from dcrad.division.subscene import build_subscene, checkpoint_arrays, subscene_arrays
 
     _, p, _ = prepare(office)
     cfg = SolverConfig(tol=0.01)
@@ -198,12 +199,12 @@ def test_open_floor_divided_matches_unsplit_and_the_closed_form():
 
 
 def test_placement_evens_the_expected_work_against_the_best_split():
-    """divide.placement against the exhaustive optimum of putting k weights on m slots: the
+    """placement.placement against the exhaustive optimum of putting k weights on m slots: the
     office 8x8's eight cells (their lamps, W) split exactly, and random sets of up to 9
     subscenes on 2 and 3 slots come within 4/3 of the optimum (LPT's bound) and mostly hit it."""
     import itertools
 
-    from dcrad.division.divide import placement
+    from dcrad.division.placement import placement
 
     def best(w, m):
         return min(max(sum(w[i] for i in range(len(w)) if s[i] == j) for j in range(m))

@@ -25,15 +25,8 @@ from coordinator.jobs import JobManager
 from coordinator.remote import WorkerPool
 from coordinator.store import CheckpointWriter, ChunkFile, JobRecord, JobStore, cell_file
 from dcrad.config import SolverConfig
-from dcrad.division.divide import (
-    DivideConfig,
-    assemble,
-    build_subscene,
-    build_subscenes,
-    checkpoint_arrays,
-    run_divided,
-    subscene_arrays,
-)
+from dcrad.division.divide import DivideConfig, assemble, build_subscenes, run_divided
+from dcrad.division.subscene import build_subscene, checkpoint_arrays, subscene_arrays
 from dcrad.pipeline import prepare
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc

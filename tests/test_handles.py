@@ -10,7 +10,8 @@ import scenes
 from coordinator.remote import RemoteSubscene, WorkerPool
 from dcrad.config import BOUNDARY_MODES, DivideConfig, SolverConfig
 from dcrad.division.boundary import MODES, boundary_mode
-from dcrad.division.divide import SubsceneHandle, build_subscenes
+from dcrad.division.divide import build_subscenes
+from dcrad.division.subscene import SubsceneHandle
 from dcrad.errors import ConfigError
 from dcrad.pipeline import prepare
 

@@ -24,7 +24,8 @@ import pytest
 import scenes
 from coordinator.embedded import LocalCluster
 from dcrad.config import SolverConfig
-from dcrad.division.divide import DivideConfig, expected_work, placement, solve_divided, subscene_specs
+from dcrad.division.divide import DivideConfig, solve_divided, subscene_specs
+from dcrad.division.placement import expected_work, placement
 from dcrad.pipeline import prepare
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
@@ -149,7 +150,7 @@ def test_over_decomposed_job_survives_a_killed_worker(office, tmp_path):
             cluster, office, "office.obj", {"tol": 0.005, "seed": 3}, {"subscenes": 4})
     assert killed and final.job.state == "done", final.job.error
     assert len(placed) == 4 and len(set(placed.values())) == 2  # over-decomposed: both workers hold some
-    # placed by expected work (divide.placement of the cells' lamps and patches), as in process
+    # placed by expected work (placement.placement of the cells' lamps and patches), as in process
     subs, *_ = subscene_specs(p, SolverConfig(tol=0.005, seed=3), DivideConfig(subscenes=4))
     slots = placement([expected_work(s.patches) for s in subs], 2)
     assert len({(slots[c], w) for c, w in placed.items()}) == 2  # same grouping of cells

@@ -106,7 +106,7 @@ def test_barrier_plan_goal_share_round_trips_and_bad_shares_are_refused():
     outside [0, 1) is refused by name, and a plan with only a share is still a plan."""
     import math
 
-    from dcrad.division.divide import BarrierPlan
+    from dcrad.division.subscene import BarrierPlan
     from dcrad.solving.solver import Stiffness
     from dcrad.wire import plan_fields, plan_from_pb
 
@@ -122,7 +122,7 @@ def test_barrier_plan_goal_share_round_trips_and_bad_shares_are_refused():
 def test_barrier_plan_ray_share_round_trips_and_a_negative_one_is_refused():
     """A subscene's share of the job's ray budget reaches the worker (a plan with only a share is a
     plan: the worker's doIterations must stop at it); a negative share is refused by name."""
-    from dcrad.division.divide import BarrierPlan
+    from dcrad.division.subscene import BarrierPlan
     from dcrad.solving.solver import Stiffness
     from dcrad.wire import plan_fields, plan_from_pb
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from coordinator.rpc import shutdown, start_server, stop_on_signals
 from dcrad.config import SolverConfig
-from dcrad.division.divide import Subscene, build_subscene, checkpoint_arrays
+from dcrad.division.subscene import Subscene, build_subscene, checkpoint_arrays
 from dcrad.errors import DcradError
 from dcrad.meshing.patches import Patches
 from dcrad.settings import from_pb

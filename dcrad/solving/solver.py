@@ -40,7 +40,7 @@ mesh (linear scaling left it 1.5-1.8x higher; bench/RESULTS.md).
 A divided job overshoots as one scene: light crosses the boundaries, so
 ``divide.run_divided`` sums every subscene's tallies at each barrier and
 hands each subscene the job's scale F and the unshot power the others hold
-(``divide.BarrierPlan``).  Twin buffers then carry signed power.
+(``subscene.BarrierPlan``).  Twin buffers then carry signed power.
 """
 
 from __future__ import annotations

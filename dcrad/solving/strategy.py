@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 from dcrad.choices import Choice
 from dcrad.config import SolverConfig
-from dcrad.division.divide import SUBSCENES_PER_WORKER, subscene_limit
+from dcrad.division.placement import SUBSCENES_PER_WORKER, subscene_limit
 from dcrad.solving.accuracy import by_accuracy
 from dcrad.transport.direct import MAX_ANALYTIC_RECEIVERS
 
@@ -91,7 +91,7 @@ def on_workers(config: SolverConfig, receivers: int, patches: int, live: int, su
     """The coordinator's choice for a job on ``live`` workers: shared when the run takes the final
     plan and no subscenes were asked for (``subscenes`` 0) and it is not resumed from a divided
     run's checkpoints; divided otherwise, into the subscenes asked for or SUBSCENES_PER_WORKER a
-    worker (at most ``divide.subscene_limit`` of ``patches``).  ``exact_lights`` False: a shared
+    worker (at most ``placement.subscene_limit`` of ``patches``).  ``exact_lights`` False: a shared
     run's direct shares found the lights make no exact-form-factor polygons, and the job divides."""
     if not subscenes and not resumed and exact_lights and shares_possible(config, receivers):
         return Strategy("shared", live, 1, Choice("strategy", (
