@@ -22,8 +22,8 @@ import grpc
 
 from dcrad.config import SolverConfig
 from dcrad.errors import ConfigError, DcradError, SceneFormatError
+from dcrad.io.gltf import gltf_files, gltf_header
 from dcrad.io.objfile import inside_folder, mtllib_files, mtllib_name, read_mtl
-from dcrad.io.scene import gltf_files, gltf_header
 from dcrad.outputs.progress import error_text, progress_fraction
 from dcrad.pipeline import resolve_scene
 from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from dcrad.errors import ConfigError, SceneFormatError, SceneValueError
-from dcrad.io.scene import DEFAULT_RHO, gltf_header, load_scene
+from dcrad.io.gltf import gltf_header
+from dcrad.io.scene import DEFAULT_RHO, load_scene
 from dcrad.meshing.mesh import AREA_SHARE, SLIVER_EDGES
 from dcrad.meshing.patches import triangle_areas
 
