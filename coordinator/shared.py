@@ -30,7 +30,7 @@ from dcrad.settings import to_pb
 from dcrad.solving.share import Replica, tally_from_arrays, tally_to_arrays
 from dcrad.transport.direct import shared_rate
 from dcrad.v1 import dcrad_pb2 as pb
-from dcrad.wire import ArrayAssembler, arrays_to_chunks
+from dcrad.wire import ArrayAssembler, arrays_to_chunks, share_phase
 
 from .remote import LOST, NoWorkers, WorkerEntry, WorkerPool
 
@@ -63,8 +63,8 @@ class RemoteShares:
         self._streaming = 0
 
     def _requests(self, phase: str, index: int, count: int, inputs: dict, with_scene: bool, with_shot: bool = True):
-        header = pb.ShareHeader(job_id=self.job_id, phase=phase, index=index, count=count, solver=self.settings,
-                                names=list(self.patches.names), scene=with_scene)
+        header = pb.ShareHeader(job_id=self.job_id, phase=share_phase(phase), index=index, count=count,
+                                solver=self.settings, names=list(self.patches.names), scene=with_scene)
         with self._lock:
             self._streaming += 1
             self.quiet.clear()
@@ -246,7 +246,7 @@ class RemoteShares:
 
     def stop(self) -> None:
         """Ask every worker holding the job to end its replica cleanly (it returns what it has)."""
-        header = pb.ShareHeader(job_id=self.job_id, phase="stop")
+        header = pb.ShareHeader(job_id=self.job_id, phase=share_phase("stop"))
         for w in self.pool.live():
             try:
                 for _ in w.stub().Share(iter([pb.ShareRequest(header=header)]), timeout=10):

@@ -23,8 +23,27 @@ from dcrad.v1 import dcrad_pb2 as pb
 __all__ = [
     "CHUNK_BYTES", "ALLOWED_DTYPES", "array_chunks", "arrays_to_chunks", "ArrayAssembler", "assemble_arrays",
     "ledger_to_pb", "ledger_from_pb", "estimate_to_pb", "file_chunks", "FileAssembler", "safe_relpath",
-    "path_chunks", "FileSink",
+    "path_chunks", "FileSink", "SHARE_PHASES", "share_phase", "share_phase_name",
 ]
+
+#: a shared run's phases by the names the coordinator and the logs use, and their wire values
+SHARE_PHASES: dict[str, pb.SharePhase] = {
+    "pilot": pb.SHARE_PHASE_PILOT, "direct": pb.SHARE_PHASE_DIRECT, "replica": pb.SHARE_PHASE_REPLICA,
+    "gather": pb.SHARE_PHASE_GATHER, "stop": pb.SHARE_PHASE_STOP,
+}
+
+
+def share_phase(name: str) -> pb.SharePhase:
+    """The wire value of a share's phase (``SHARE_PHASES``); ValueError names an unknown one."""
+    if name not in SHARE_PHASES:
+        raise ValueError(f"no share phase {name!r}: one of {', '.join(SHARE_PHASES)}")
+    return SHARE_PHASES[name]
+
+
+def share_phase_name(value: pb.SharePhase) -> str:
+    """The name of a share phase's wire value, or "" when it is none of ``SHARE_PHASES`` (unset, or
+    from a newer sender)."""
+    return next((name for name, v in SHARE_PHASES.items() if v == value), "")
 
 #: bytes of payload per chunk: far below gRPC's 4 MB default
 CHUNK_BYTES = 1 << 20

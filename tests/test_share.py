@@ -278,26 +278,28 @@ def test_a_worker_refuses_bad_shares_by_name(table):
 
             settings = to_pb(SolverConfig(accuracy=0.05), pb.SolverSettings)
             with pytest.raises(grpc.RpcError) as err:
-                share(pb.ShareHeader(job_id="j", phase="pilot", index=0, count=1, solver=settings))
+                share(pb.ShareHeader(job_id="j", phase=pb.SHARE_PHASE_PILOT, index=0, count=1, solver=settings))
             assert err.value.code() == grpc.StatusCode.NOT_FOUND and "patch table" in err.value.details()
-            with pytest.raises(grpc.RpcError) as err:
-                share(pb.ShareHeader(job_id="j", phase="melt", index=0, count=1, solver=settings))
-            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "melt" in err.value.details()
+            for phase in (pb.SHARE_PHASE_UNSPECIFIED, 99):  # unset, or a phase this worker does not know
+                with pytest.raises(grpc.RpcError) as err:
+                    share(pb.ShareHeader(job_id="j", phase=phase, index=0, count=1, solver=settings))
+                assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT, err.value.details()
+                assert f"phase {phase} (unset or unknown)" in err.value.details()
             table_arrays = {f"scene_{k}": v for k, v in patches.table_arrays().items()}
             with pytest.raises(grpc.RpcError) as err:
-                share(pb.ShareHeader(job_id="j", phase="pilot", index=0, count=1, solver=settings,
+                share(pb.ShareHeader(job_id="j", phase=pb.SHARE_PHASE_PILOT, index=0, count=1, solver=settings,
                                      names=list(patches.names), scene=True),
                       table_arrays | {"rows": np.array([len(patches) + 7])})
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "outside" in err.value.details()
             with pytest.raises(grpc.RpcError) as err:  # the table is held now; a gather without its shot
-                share(pb.ShareHeader(job_id="j", phase="gather", index=0, count=1, solver=settings),
+                share(pb.ShareHeader(job_id="j", phase=pb.SHARE_PHASE_GATHER, index=0, count=1, solver=settings),
                       {"rows": np.array([0, 1]), "rounds": np.array([4])})
             assert err.value.code() == grpc.StatusCode.NOT_FOUND and "shot solution" in err.value.details()
             n = len(patches)
             shot = {"shot_radiosity": np.zeros((n, 3)), "shot_diff": np.zeros((n, 3)),
                     "shot_direct": np.zeros((n, 2)), "shot_direct_a": np.zeros((n, 3))}
             with pytest.raises(grpc.RpcError) as err:
-                share(pb.ShareHeader(job_id="j", phase="gather", index=0, count=1, solver=settings),
+                share(pb.ShareHeader(job_id="j", phase=pb.SHARE_PHASE_GATHER, index=0, count=1, solver=settings),
                       shot | {"rows": np.array([0, 1]), "rounds": np.array([4])})
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "direct has shape" in err.value.details()
 

@@ -131,3 +131,18 @@ def test_barrier_plan_ray_share_round_trips_and_a_negative_one_is_refused():
     assert back is not None and back.rays_left == 123_456_789_012 and back.goal == 0.0
     with pytest.raises(ExchangeError, match="rays_left"):
         plan_from_pb(pb.IterateRequest(batches=4, **(plan_fields(plan) | {"rays_left": -1})))
+
+
+def test_share_phases_cross_the_wire_as_the_protos_enum():
+    """Every phase a shared run uses has its own SharePhase value, and back; an unknown name is refused
+    by name, and an unset or unknown value reads as no phase (the worker refuses it)."""
+    from dcrad.wire import SHARE_PHASES, share_phase, share_phase_name
+
+    values = {share_phase(name) for name in ("pilot", "direct", "replica", "gather", "stop")}
+    assert len(values) == len(SHARE_PHASES) == 5 and pb.SHARE_PHASE_UNSPECIFIED not in values
+    for name in SHARE_PHASES:
+        header = pb.ShareHeader.FromString(pb.ShareHeader(phase=share_phase(name)).SerializeToString())
+        assert share_phase_name(header.phase) == name
+    assert share_phase_name(pb.SHARE_PHASE_UNSPECIFIED) == "" and share_phase_name(99) == ""
+    with pytest.raises(ValueError, match="melt"):
+        share_phase("melt")

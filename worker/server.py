@@ -36,7 +36,7 @@ from dcrad.transport.direct import GatherStopped
 from dcrad.transport.rays import Tracer
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
-from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb
+from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb, share_phase_name
 
 log = logging.getLogger("dcrad.worker")
 
@@ -157,16 +157,17 @@ class WorkerServicer(pb_grpc.WorkerServicer):
         if header is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Share needs a header first")
         job = header.job_id
+        phase = share_phase_name(header.phase)  # "" when unset or unknown: refused below
         stop = self.stops.setdefault(job, threading.Event())
-        if header.phase == "stop":
+        if phase == "stop":
             stop.set()
             return
         try:
             arrays = asm.result()
             config = from_pb(SolverConfig, header.solver)
-            phases = ("pilot", "direct", "replica", "gather")
-            if header.phase not in phases or not 0 <= header.index < max(header.count, 1):
-                raise ValueError(f"bad share: phase {header.phase!r}, index {header.index} of {header.count}")
+            if phase not in ("pilot", "direct", "replica", "gather") or not 0 <= header.index < max(header.count, 1):
+                what = phase or f"{header.phase} (unset or unknown)"
+                raise ValueError(f"bad share: phase {what}, index {header.index} of {header.count}")
             if header.scene:
                 table = {k[len("scene_"):]: v for k, v in arrays.items() if k.startswith("scene_")}
                 t_read = time.perf_counter()
@@ -196,13 +197,13 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                 def stopping() -> bool:
                     return cancelled.is_set() or stop.is_set()
 
-                if header.phase == "pilot":
+                if phase == "pilot":
                     pilot = await asyncio.to_thread(direct_pilot, patches, config, tracer, rows, header.index,
                                                     stopping)
                     if pilot is not None:
                         self.pilots[key] = pilot
                     out = {} if pilot is None else {"pilot": np.array([pilot.need, pilot.weight])}
-                elif header.phase == "direct":
+                elif phase == "direct":
                     rate = float(np.asarray(arrays["rate"]).ravel()[0])
                     held = self.pilots.pop(key, None)
                     if held is not None and not np.array_equal(held.receivers, rows):
@@ -210,7 +211,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                     got = await asyncio.to_thread(direct_share, patches, config, tracer, rows, header.index, rate,
                                                   held, stopping)
                     out = {} if got is None else tally_to_arrays(got)
-                elif header.phase == "gather":
+                elif phase == "gather":
                     if "shot_radiosity" in arrays:  # sent once a job: every gather share reads it
                         self.shots[job] = Shot.from_arrays(arrays, len(patches))
                     shot = self.shots.get(job)
@@ -229,20 +230,20 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                                                   header.count, stopping)
                     out = rep.to_arrays()
             except GatherStopped:
-                await context.abort(grpc.StatusCode.CANCELLED, f"{header.phase} share {header.index} of job {job} "
+                await context.abort(grpc.StatusCode.CANCELLED, f"{phase} share {header.index} of job {job} "
                                                                f"stopped: the job was cancelled")
             except KeyError as exc:
-                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {header.phase} share: "
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {phase} share: "
                                                                       f"the request has no array {exc}")
             except (DcradError, TypeError, ValueError) as exc:
-                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {header.phase} share: {exc}")
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"cannot run {phase} share: {exc}")
             log.info("job %s: %s share %d of %d in %.2f s (%.2f CPU s; its request read in %.2f s)", job,
-                     header.phase, header.index, header.count, time.perf_counter() - t0, time.process_time() - c0,
+                     phase, header.index, header.count, time.perf_counter() - t0, time.process_time() - c0,
                      t0 - t_in)
         t1 = time.perf_counter()
         for chunk in arrays_to_chunks(out):
             yield chunk
-        log.info("job %s: %s share %d replied in %.2f s (%.1f MB)", job, header.phase, header.index,
+        log.info("job %s: %s share %d replied in %.2f s (%.1f MB)", job, phase, header.index,
                  time.perf_counter() - t1, sum(np.asarray(v).nbytes for v in out.values()) / 1e6)
 
     async def Interrupt(self, request, context):

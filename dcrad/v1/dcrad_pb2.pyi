@@ -1,10 +1,26 @@
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from collections.abc import Iterable as _Iterable, Mapping as _Mapping
 from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class SharePhase(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    SHARE_PHASE_UNSPECIFIED: _ClassVar[SharePhase]
+    SHARE_PHASE_PILOT: _ClassVar[SharePhase]
+    SHARE_PHASE_DIRECT: _ClassVar[SharePhase]
+    SHARE_PHASE_REPLICA: _ClassVar[SharePhase]
+    SHARE_PHASE_GATHER: _ClassVar[SharePhase]
+    SHARE_PHASE_STOP: _ClassVar[SharePhase]
+SHARE_PHASE_UNSPECIFIED: SharePhase
+SHARE_PHASE_PILOT: SharePhase
+SHARE_PHASE_DIRECT: SharePhase
+SHARE_PHASE_REPLICA: SharePhase
+SHARE_PHASE_GATHER: SharePhase
+SHARE_PHASE_STOP: SharePhase
 
 class ArrayChunk(_message.Message):
     __slots__ = ("name", "dtype", "shape", "offset", "total_bytes", "data")
@@ -392,13 +408,13 @@ class ShareHeader(_message.Message):
     NAMES_FIELD_NUMBER: _ClassVar[int]
     SCENE_FIELD_NUMBER: _ClassVar[int]
     job_id: str
-    phase: str
+    phase: SharePhase
     index: int
     count: int
     solver: SolverSettings
     names: _containers.RepeatedScalarFieldContainer[str]
     scene: bool
-    def __init__(self, job_id: _Optional[str] = ..., phase: _Optional[str] = ..., index: _Optional[int] = ..., count: _Optional[int] = ..., solver: _Optional[_Union[SolverSettings, _Mapping]] = ..., names: _Optional[_Iterable[str]] = ..., scene: _Optional[bool] = ...) -> None: ...
+    def __init__(self, job_id: _Optional[str] = ..., phase: _Optional[_Union[SharePhase, str]] = ..., index: _Optional[int] = ..., count: _Optional[int] = ..., solver: _Optional[_Union[SolverSettings, _Mapping]] = ..., names: _Optional[_Iterable[str]] = ..., scene: _Optional[bool] = ...) -> None: ...
 
 class ShareRequest(_message.Message):
     __slots__ = ("header", "array")

@@ -5,7 +5,7 @@ import warnings
 
 from dcrad.v1 import dcrad_pb2 as dcrad_dot_v1_dot_dcrad__pb2
 
-GRPC_GENERATED_VERSION = '1.85.1'
+GRPC_GENERATED_VERSION = '1.85.4'
 GRPC_VERSION = grpc.__version__
 _version_not_supported = False
 
