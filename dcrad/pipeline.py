@@ -61,10 +61,12 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
     """A scene path, or a built-in scene name with optional parameters.
 
     ``office``, ``cornell``, ``furnace`` or ``office:rows=3,cols=4,seed=2`` write the
-    generated OBJ/MTL into ``workdir`` and return its path.
+    generated OBJ/MTL into ``workdir`` and return its path.  A file of that name wins; a folder
+    does not (``dcrad solve cornell --out cornell`` run twice left a folder ``cornell`` that the
+    second run took for the scene).
     """
     name, _, params = spec.partition(":")
-    if Path(spec).exists() or name not in scenes.names():
+    if Path(spec).is_file() or name not in scenes.names():
         return Path(spec)
     kwargs = {}
     for item in filter(None, params.split(",")):

@@ -323,3 +323,18 @@ def test_count_flags_take_whole_numbers_as_people_write_them(capsys):
             build_parser().parse_args(["solve", "office", "--max-rays", bad])
         assert exc.value.code == 2
         assert f"argument --max-rays: '{bad}' is not a whole number" in capsys.readouterr().err
+
+
+def test_a_folder_named_like_a_built_in_scene_is_not_taken_for_it(tmp_path):
+    """`dcrad solve cornell --out cornell`, run twice, leaves a folder `cornell` in the working
+    directory: the built-in scene is still what `cornell` means (a file of that name would win).  A
+    folder given where a scene file belongs is named as a folder, not as an unknown format ''."""
+    (tmp_path / "cornell").mkdir()
+    r = dcrad("solve", "cornell", "--patch-size", "0.2", "--accuracy", "0.2", "--workers", "0", "--width", "32",
+              "--height", "24", "--out", "cornell", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "cornell" / "report.json").read_text())["scene"]["input_triangles"] > 0
+    (tmp_path / "rooms").mkdir()
+    r = dcrad("solve", "rooms", "--workers", "0", "--out", "out", cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1] == (
+        "dcrad: error: rooms is a folder, not a scene file: give the .obj, .gltf or .glb in it"), r.stderr

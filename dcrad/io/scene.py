@@ -443,6 +443,8 @@ def load_scene(path, scale: float = 1.0, up: str | None = None, two_sided: bool 
         raise ConfigError(f"invalid scale {scale!r}: must be a finite number > 0")
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
+    if os.path.isdir(path):
+        raise SceneFormatError(f"{path} is a folder, not a scene file: give the .obj, .gltf or .glb in it")
     if ext not in (".obj", ".gltf", ".glb"):
         raise SceneFormatError(f"unsupported scene format '{ext}' for {path}; use .obj, .gltf or .glb")
     if not os.path.isfile(path):
