@@ -31,7 +31,8 @@ from dcrad.outputs import photometry, render
 from dcrad.outputs.report import TIMINGS, RunBooks, run_report, write_json
 from dcrad.solving.accuracy import describe, noise_floor_note, resolve
 from dcrad.solving.passes import solve_to_accuracy
-from dcrad.solving.solver import GREY_CHOICE, Stats, stiff_choice
+from dcrad.solving.solver import GREY_CHOICE, Stats
+from dcrad.solving.stiffness import stiff_choice
 from dcrad.transport import luminaires, optics, punctual
 from dcrad.transport.rays import Tracer
 

@@ -17,7 +17,7 @@ import numpy as np
 from dcrad.division.subscene import BarrierPlan
 from dcrad.errors import ExchangeError
 from dcrad.solving.energy import ACCOUNTS, MAGNITUDES, Ledger
-from dcrad.solving.solver import Stiffness
+from dcrad.solving.stiffness import Stiffness
 from dcrad.v1 import dcrad_pb2 as pb
 
 __all__ = [

@@ -380,7 +380,7 @@ def test_the_final_gather_keeps_to_the_time_limit(office_reference, monkeypatch)
 def test_within_budget_cuts_a_round_to_what_the_budget_leaves():
     """r rays a receiver cost up to r (1 + BRIGHT_SHARE) rays: 1000 rays left for 10 receivers
     fit 83 (82, even); a round that fits, or no budget, is left alone (odd too); none left: 0."""
-    from dcrad.solving.solver import within_budget
+    from dcrad.solving.rounds import within_budget
     from dcrad.transport.final import BRIGHT_SHARE
 
     assert within_budget(124, 1000, 0, 10) == 82 == 2 * int(1000 / (10 * (1 + BRIGHT_SHARE)) / 2)
@@ -456,13 +456,13 @@ def test_a_stop_in_the_direct_gather_abandons_it_within_a_run_of_cells(tmp_path,
 
 
 def test_the_final_gather_rounds_top_up_to_the_target_and_keep_the_limits():
-    """solver.gather_rounds, the one driver of a final gather's rounds (Solver.finish and the shared
+    """rounds.gather_rounds, the one driver of a final gather's rounds (Solver.finish and the shared
     run): on a fake run whose error after r rays a receiver is 0.02 + 0.02 sqrt(100 / r) (a floor
     the rays do not lower), the rounds are the first and then (error / target)^2 x FINAL_MARGIN x done
     - done more (from the definition, at most 8x the first in all), at most FINAL_ROUNDS; a run that
     meets the target, a halted run and a tol-mode run trace one; under --max-rays the rounds stop
     where two rays no longer fit, and say so."""
-    from dcrad.solving.solver import FINAL_MARGIN, FINAL_ROUNDS, gather_rounds
+    from dcrad.solving.rounds import FINAL_MARGIN, FINAL_ROUNDS, gather_rounds
 
     def error(r: int) -> float:
         return 0.02 + 0.02 * math.sqrt(100 / r)

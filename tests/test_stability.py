@@ -127,7 +127,7 @@ def test_stiffness_is_measured_as_the_return_ratio(tmp_path):
     assert np.allclose(st.scale, 1.0 / ((1 - lam) * p.area.sum()), rtol=1e-9)
     assert st.ray_factor == pytest.approx(np.sqrt((1 - cfg.overshoot_min_return) / (1 - lam.max())), rel=1e-9)
     # not stiff: no overshoot and the full ray budget
-    from dcrad.solving.solver import stiffness
+    from dcrad.solving.stiffness import stiffness
 
     mild = stiffness(np.array([shot, lost, landed, 0.5 * landed]), float(p.area.sum()), cfg)
     assert not mild.scale.any() and mild.ray_factor == 1.0

@@ -107,7 +107,7 @@ def test_barrier_plan_goal_share_round_trips_and_bad_shares_are_refused():
     import math
 
     from dcrad.division.subscene import BarrierPlan
-    from dcrad.solving.solver import Stiffness
+    from dcrad.solving.stiffness import Stiffness
     from dcrad.wire import plan_fields, plan_from_pb
 
     plan = BarrierPlan(Stiffness.none(), np.zeros(3), 0.0, 0.179)
@@ -123,7 +123,7 @@ def test_barrier_plan_ray_share_round_trips_and_a_negative_one_is_refused():
     """A subscene's share of the job's ray budget reaches the worker (a plan with only a share is a
     plan: the worker's doIterations must stop at it); a negative share is refused by name."""
     from dcrad.division.subscene import BarrierPlan
-    from dcrad.solving.solver import Stiffness
+    from dcrad.solving.stiffness import Stiffness
     from dcrad.wire import plan_fields, plan_from_pb
 
     plan = BarrierPlan(Stiffness.none(), np.zeros(3), rays_left=123_456_789_012)

@@ -51,7 +51,8 @@ from dcrad.meshing.patches import Patches
 from dcrad.solving.accuracy import by_accuracy, noise_floor, residual_goal, resolve
 from dcrad.solving.energy import Ledger
 from dcrad.solving.snapshots import SnapshotStore
-from dcrad.solving.solver import Snapshot, Stiffness, stiffness
+from dcrad.solving.solver import Snapshot
+from dcrad.solving.stiffness import Stiffness, stiffness
 from dcrad.transport.emitters import check_single
 from dcrad.transport.optics import check_single as check_glass
 

@@ -30,7 +30,8 @@ from dcrad.division.boundary import (
 from dcrad.estimate.noise import NoiseSums
 from dcrad.meshing.patches import Patches
 from dcrad.solving.energy import Ledger
-from dcrad.solving.solver import Solver, Stiffness
+from dcrad.solving.solver import Solver
+from dcrad.solving.stiffness import Stiffness
 from dcrad.transport.rays import Tracer
 from dcrad.transport.shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
 from dcrad.transport.shooters import spatial_order

@@ -154,7 +154,7 @@ def bias_ambient(tallies: np.ndarray, unshot: np.ndarray, area: float, mean_rho:
     """(3,) W/m^2: the irradiance the unshot power (3,) W will still bring, spread evenly.
 
     g = q U / ((1 - lambda) A) with q the share of shot power that lands and lambda
-    the return ratio, both from the run's return tallies (solve.stiffness); before
+    the return ratio, both from the run's return tallies (stiffness.stiffness); before
     anything was shot, q = 1 and lambda = the mean rho (a closed scene).
     """
     shot, lost, landed, kept = np.asarray(tallies, np.float64)

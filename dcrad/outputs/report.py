@@ -28,7 +28,7 @@ from dcrad.meshing.patches import Patches
 from dcrad.solving.energy import Ledger, escaped_light, flipped_normals, rms_error
 
 if TYPE_CHECKING:  # an annotation only: importing this module does not load the solver
-    from dcrad.solving.solver import Stiffness
+    from dcrad.solving.stiffness import Stiffness
 
 __all__ = ["RunBooks", "TIMINGS", "error_curve", "escaped_light", "flipped_normals", "run_report", "write_json"]
 
@@ -62,7 +62,7 @@ class RunBooks:
     estimate: object = None
     #: colour channels tallied (1: a grey scene, copied to the other two)
     channels: int = 3
-    #: the ``solve.Stiffness`` that last changed how the run shot (None: never stiff)
+    #: the ``stiffness.Stiffness`` that last changed how the run shot (None: never stiff)
     stiff: Stiffness | None = None
 
     @classmethod

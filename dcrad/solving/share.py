@@ -31,7 +31,7 @@ bench/RESULTS.md).  A shared run keeps it and divides the work instead:
    gathers of 1/k of them each, lost the stratification's gain: on the office 3x3, 62 rays a
    patch gave 2.40% where 124 gave 1.57%), and the shared run combines the sums
    (``final.FinalGather.solution``), topping the gather up while the estimate is
-   above the target as a single run does (``solver.gather_rounds``).
+   above the target as a single run does (``rounds.gather_rounds``).
 
 Every share is a pure function of the scene, the settings, its index and its
 inputs: a share lost with its worker is run again elsewhere with the same
@@ -55,16 +55,9 @@ from dcrad.meshing.patches import Patches
 from dcrad.outputs.report import RunBooks
 from dcrad.solving.accuracy import final_plan, resolve
 from dcrad.solving.energy import ACCOUNTS, MAGNITUDES, Ledger
-from dcrad.solving.solver import (
-    ReplicaRole,
-    Snapshot,
-    Solver,
-    Stats,
-    Stiffness,
-    budget_cut_note,
-    fit_round,
-    gather_rounds,
-)
+from dcrad.solving.rounds import budget_cut_note, fit_round, gather_rounds
+from dcrad.solving.solver import ReplicaRole, Snapshot, Solver, Stats
+from dcrad.solving.stiffness import Stiffness
 from dcrad.transport.direct import AnalyticGather, DirectTally, GatherStopped, merge, shared_rate
 from dcrad.transport.emitters import check_single
 from dcrad.transport.final import FinalGather
@@ -459,7 +452,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
             if on_phase is not None:
                 on_phase("gather", time.perf_counter() - t0, shot_rays + gather_rays, est_now[0])
 
-        # the rounds are Solver.finish's (solver.gather_rounds), each split by receivers over the shares
+        # the rounds are Solver.finish's (rounds.gather_rounds), each split by receivers over the shares
         budget_cut = gather_rounds(first, cfg, receivers,
                                    spent=lambda: (shot_rays + gather_rays, time.perf_counter() - t0), trace=trace,
                                    error=lambda: est_now[0].rms_refl,

@@ -58,7 +58,9 @@ from dcrad.estimate.noise import Estimate, NoiseTally, bias_ambient, combine, fi
 from dcrad.meshing.patches import Patches
 from dcrad.solving.accuracy import FINAL_BIAS_SHARE, by_accuracy, final_plan, noise_floor, resolve
 from dcrad.solving.energy import Ledger, escaped_light, flipped_normals
+from dcrad.solving.rounds import budget_cut_note, gather_rounds
 from dcrad.solving.snapshots import SnapshotStore
+from dcrad.solving.stiffness import Stiffness, stiff_choice, stiffness
 from dcrad.transport.direct import (
     GATHER_MARGIN,
     MAX_ANALYTIC_RECEIVERS,
@@ -81,19 +83,12 @@ from dcrad.transport.rays import Tracer
 from dcrad.transport.shoot import deposit, landing, patch_rays, ray_offset, trace
 from dcrad.transport.shooters import ShooterPool, pool_size, spatial_order
 
-__all__ = ["Solver", "ReplicaRole", "Snapshot", "Stiffness", "stiffness", "solve", "top_up", "FINAL_ROUNDS"]
+__all__ = ["Solver", "ReplicaRole", "Snapshot", "solve"]
 
 #: batches between exact recounts of the ledger's unshot sums; in between they are
 #: kept incrementally from the rows each batch touched (shooters and rows hit)
 RECOUNT_EVERY = 256
 
-
-#: rounds of the final gather at most (the first included; final.FinalGather)
-FINAL_ROUNDS = 3
-#: a top-up round aims at the target with this margin on the rays: part of the noise is what
-#: the gather reads, which more rays do not lower (1.1 left the office at 2.07% for 2%;
-#: 1.4 overshot: 7.3M rays for 1.87%)
-FINAL_MARGIN = 1.25
 
 #: the report's line for a scene whose rho and E are grey
 GATHER_STOPPED = ("direct gather stopped before it finished (a stop request): nothing of it is booked, the "
@@ -1057,161 +1052,6 @@ NEAR_STOP = 4.0
 #: light still bouncing inside a lamp's housing (office3 stopped with 1.8% unshot, its lamp
 #: interiors 2% dark, 87% of its error, the estimate at 0.6x the error measured)
 UNSHOT_SHARE = 0.25
-
-
-def budget_cut_note(cut: int, planned: int, limit: str, config: SolverConfig, used: int) -> str:
-    """The report's line on a final gather cut by ``fit_round`` to what ``limit`` ("ray_budget" or
-    "time_limit") of ``config`` left (in process and shared runs)."""
-    kind, flag = (("time limit", f"--time-limit {config.time_limit:g}") if limit == "time_limit" else
-                  ("ray budget", f"--max-rays {config.max_rays}"))
-    return (f"{kind}: the final gather cut to {cut} rays per receiving patch (planned {planned}), what "
-            f"{flag} leaves after {used} rays" + ("; not gathered: B is the shot solution"
-                                                  if cut < 2 else ""))
-
-
-def fit_round(rays: int, config: SolverConfig, used: int, elapsed: float, receivers: int) -> tuple[int, str]:
-    """A final-gather round of ``rays`` a receiver cut to what --max-rays leaves after ``used`` rays
-    and what --time-limit leaves after ``elapsed`` s at the run's rate so far (``used / elapsed``
-    rays a second), and the limit that cut it: "ray_budget", "time_limit" or "" (none did)."""
-    got, by = within_budget(rays, config.max_rays, used, receivers), "ray_budget"
-    if config.time_limit and used and elapsed > 0:
-        left = used / elapsed * (config.time_limit - elapsed)
-        timed = within_budget(rays, used + int(max(left, 0.0)), used, receivers)
-        if timed < got:
-            got, by = timed, "time_limit"
-    return got, by if got < rays else ""
-
-
-@dataclass
-class Rounds:
-    """The final gather's rounds as ``gather_rounds`` ran them: rays a receiver of each, and the limit
-    that cut one ("ray_budget", "time_limit" or "": none did)."""
-
-    traced: list[int]
-    by: str
-
-
-def gather_rounds(first: int, config: SolverConfig, receivers: int, spent, trace, error, halted,
-                  on_first=None) -> Rounds:
-    """The final gather's rounds, one driver for a run in one process (Solver.finish) and a shared
-    run (share.run_shared): a first round of ``first`` rays a receiver cut to what the limits leave
-    (fit_round; ``on_first(rays, limit)`` is told before it is traced); then, in accuracy mode, while
-    ``error()`` is above the target, a top-up round (top_up: (error / target)^2 x FINAL_MARGIN rays a
-    receiver in all, at most 8x the first), at most FINAL_ROUNDS rounds in all, none once
-    ``halted()`` (a stop was asked, or a round stopped before it reached every receiver) and none the
-    limits leave no two rays for (a passed time limit leaves none).  ``spent()`` -> (rays traced so
-    far, seconds so far); ``trace(rays)`` traces a round of that many (even) rays a receiver."""
-    rays, elapsed = spent()
-    more, by = fit_round(first + first % 2, config, rays, elapsed, receivers)
-    if on_first is not None:
-        on_first(more, by)
-    done: list[int] = []
-    while more >= 2:
-        trace(more)
-        done.append(more)
-        if len(done) >= FINAL_ROUNDS or not by_accuracy(config) or halted():
-            break
-        err = error()
-        if err <= config.accuracy:
-            break
-        want = top_up(sum(done), first, err, config.accuracy)
-        rays, elapsed = spent()
-        more, cut = fit_round(want + want % 2, config, rays, elapsed, receivers)
-        by = by or cut
-    return Rounds(done, by)
-
-
-def within_budget(rays: int, max_rays: int, used: int, receivers: int) -> int:
-    """Gather rays per receiver of a final round (``rays``) cut to what ``max_rays`` leaves after
-    ``used``, even (0: not two fit).  A round of r rays traces r cosine rays a receiver and at
-    most BRIGHT_SHARE x r area samples of the bright set (final.FinalGather)."""
-    fit = int((max_rays - used) / (max(receivers, 1) * (1.0 + BRIGHT_SHARE))) if max_rays else rays
-    return rays if fit >= rays else max(fit - fit % 2, 0)
-
-
-def top_up(done: int, first: int, err: float, target: float) -> int:
-    """Gather rays per receiver of the next top-up round of a final gather that has ``done`` of them
-    (``first`` in its first round) and reads ``err`` for ``target``: (err / target)^2 x FINAL_MARGIN
-    of them in all, as if the noise were all the gather's sampling, at most 8x the first round's."""
-    more = int(math.ceil(done * ((err / target) ** 2 * FINAL_MARGIN - 1.0)))
-    return min(more, 8 * first - done)
-
-
-@dataclass(frozen=True)
-class Stiffness:
-    """How a (sub)scene shoots now: the ambient scale and the ray budget factor.
-
-    scale      : (3,) 1/m^2, F with ambient irradiance g = F * U (U: signed
-                 unshot power, W); zeros: no overshooting
-    ray_factor : the power per ray is multiplied by this (>= 1; 1 unless stiff)
-    ret        : the return ratio it was estimated from
-    """
-
-    scale: np.ndarray
-    ray_factor: float = 1.0
-    ret: float = 0.0  #: the measured return ratio lambda (largest channel)
-
-    @staticmethod
-    def none() -> "Stiffness":
-        return Stiffness(np.zeros(3), 1.0)
-
-    @property
-    def active(self) -> bool:
-        """True when it changes how the scene shoots (overshoot or a larger power per ray)."""
-        return bool(self.scale.any()) or self.ray_factor != 1.0
-
-    def min_rays(self, config: SolverConfig) -> int:
-        """Fewest rays per patch shot: the floor shrinks with the ray factor.
-
-        The floor spreads a weak shot over the hemisphere; in a stiff scene every
-        patch is shot many times (overshoot, then corrections), each with a new
-        lattice, so its directions add up over the run.  A full floor there made
-        each sweep cost 32 rays per patch for power worth one.
-        """
-        return max(1, int(math.ceil(config.min_rays / self.ray_factor)))
-
-
-def stiff_choice(st: Stiffness, config: SolverConfig) -> str:
-    """The report's line on what a stiff scene changed."""
-    what = []
-    if st.scale.any():
-        what.append("ambient overshooting")
-    if st.ray_factor != 1.0:
-        what.append(f"power per ray x{st.ray_factor:.3g} and at least {st.min_rays(config)} rays a patch shot")
-    return f"stiff scene (return ratio {st.ret:.4f}): " + ", ".join(what)
-
-
-def stiffness(tallies: np.ndarray, area: float, config: SolverConfig, mean_rho: np.ndarray | None = None) -> Stiffness:
-    """Estimate how stiff a scene is from its return tallies and choose how to shoot.
-
-    tallies: (4,3) W (magnitudes) shot by patches, lost (escaped or back faces),
-    landed and kept (``Solver.tallies``, summed over subscenes for a divided
-    job); area: m^2 of all patches.  The share of shot power that lands is
-    q = 1 - lost / shot (light crossing a boundary is still on its way), and the
-    return ratio lambda = q * kept / landed (q times the mean rho where light
-    lands).  Before the first shot ``mean_rho`` stands in for lambda (a closed
-    scene); without it, nothing is assumed.
-
-    Stiff (lambda >= overshoot_min_return): F = overshoot * q / ((1-lambda) * A),
-    and with ``stiff_rays`` the power per ray grows by sqrt((1-min_return)/(1-lambda)).
-    """
-    shot, lost, landed, kept = np.asarray(tallies, np.float64)
-    if area <= 0:
-        return Stiffness.none()
-    if shot.sum() > 0 and landed.sum() > 0:
-        q = np.clip(1.0 - lost / np.maximum(shot, 1e-300), 0.0, 1.0)
-        lam = q * kept / np.maximum(landed, 1e-300)
-    elif shot.sum() > 0:
-        return Stiffness.none()  # nothing has landed: an open scene
-    elif mean_rho is not None:
-        q, lam = np.ones(3), np.asarray(mean_rho, np.float64)
-    else:
-        return Stiffness.none()
-    lam = np.clip(lam, 0.0, 1.0 - 1e-6)
-    if lam.max() < config.overshoot_min_return:
-        return Stiffness.none()  # not stiff: the tail is short, plain shooting keeps B >= 0
-    factor = math.sqrt((1.0 - config.overshoot_min_return) / (1.0 - float(lam.max()))) if config.stiff_rays else 1.0
-    return Stiffness(config.overshoot * q / ((1.0 - lam) * area), max(1.0, factor), float(lam.max()))
 
 
 def solve(patches: Patches, config: SolverConfig | None = None, **run_kwargs) -> Solver:

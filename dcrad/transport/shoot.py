@@ -61,7 +61,7 @@ class Tally:
     lost (3,) W  sum of |ray power| over rays that escaped or hit a back face: unlike
     the signed sums, the loss does not cancel when rays of both signs (overshooting)
     meet, and kept/landed is a mean rho whatever the signs; they feed the
-    return-ratio estimate (solve.stiffness)
+    return-ratio estimate (stiffness.stiffness)
     """
 
     received: np.ndarray
