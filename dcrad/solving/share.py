@@ -290,8 +290,13 @@ def blend(patches: Patches, replicas: list[Replica]) -> tuple[Shot, NoiseTally]:
 
 
 def estimate_of(patches: Patches, noise: NoiseTally, shot: Shot) -> Estimate:
-    return combine(noise.sums(), bias_ambient(shot.tallies, shot.ledger.held(), patches.total_area,
-                                              patches.mean_rho))
+    """The shared run's estimate as the target holds it, with B per input triangle and per element
+    beside it (``Solver.estimate``'s three readings)."""
+    ambient = bias_ambient(shot.tallies, shot.ledger.held(), patches.total_area, patches.mean_rho)
+    est = combine(noise.sums(), ambient)
+    est.triangles_refl = finite(combine(noise.triangle_sums(), ambient).rms_refl)
+    est.elements_refl = finite(combine(noise.element_sums(), ambient).rms_refl)
+    return est
 
 
 def gather_share(patches: Patches, config: SolverConfig, tracer: Tracer, shot: Shot, rows: np.ndarray, index: int,
