@@ -18,6 +18,7 @@ from dcrad.estimate.noise import SHOWN_SLACK, NoiseSums, NoiseTally, combine, ha
 from dcrad.meshing.patches import Patches
 from dcrad.pipeline import prepare
 from dcrad.solving.accuracy import by_accuracy, rays_for, resolve
+from dcrad.solving.energy import read_error
 from dcrad.solving.passes import solve_to_accuracy
 from dcrad.solving.solver import UNSHOT_SHARE, Solver
 from dcrad.transport.lights import light_polygons, polygon_form_factor
@@ -37,25 +38,18 @@ def uniform_furnace(tmp_path_factory):
     return patches, Tracer(patches.triangles)
 
 
-def measured(patches, per_triangle: bool = False) -> tuple[float, float]:
-    """(RMS error W/m^2, over RMS(B* - E)) against the exact B* = E / (1 - rho), of B as it is read:
-    per element (a cluster's patches share one B; here every patch stands alone), or per input
-    triangle (the area mean of its elements, radiosity.npz's B)."""
-    exact = patches.emission / (1.0 - RHO)
-    reads, a = patches.reads(per_triangle), patches.area
-    w = np.bincount(reads, weights=a)
-    ok = w > 0
-    mean = np.stack([np.bincount(reads, weights=a * (patches.radiosity - exact)[:, c])[ok] / w[ok]
-                     for c in range(3)], axis=1)
-    err = float(np.sqrt((w[ok, None] * mean ** 2).sum() / w[ok].sum() / 3))
-    return err, err / (RHO / (1.0 - RHO))
+def measured(patches, per_triangle: bool = False) -> float:
+    """The RMS error over RMS(B* - E) against the exact B* = E / (1 - rho), of B as it is read: per
+    element (a cluster's patches share one B; here every patch stands alone), or per input triangle
+    (the area mean of its elements, radiosity.npz's B)."""
+    return read_error(patches, patches.radiosity, patches.emission / (1.0 - RHO), per_triangle)
 
 
 def assert_honest(est, patches, within: float = 1.5) -> float:
     """The estimate per element and per input triangle within ``within`` of the error measured in
     each reading; returns the measured error per input triangle over RMS(B* - E) (the target's)."""
-    _, element = measured(patches)
-    _, triangle = measured(patches, per_triangle=True)
+    element = measured(patches)
+    triangle = measured(patches, per_triangle=True)
     assert 1 / within < est.elements_refl / element < within, (est, element)
     assert 1 / within < est.triangles_refl / triangle < within, (est, triangle)
     return triangle
@@ -134,7 +128,7 @@ def test_divided_estimate_combines_subscenes(uniform_furnace):
     assert est is not None and len(subs) == 2
     # the subscenes' sums are of the reading the target holds: per input triangle, the elements
     # within SHOWN_SLACK of it (its noise alone: the run is converged, no bias)
-    held = max(measured(patches, per_triangle=True)[1], measured(patches)[1] / SHOWN_SLACK)
+    held = max(measured(patches, per_triangle=True), measured(patches) / SHOWN_SLACK)
     assert 1 / 1.5 < est.rms_refl / held < 1.5, (est, held)
     assert run.snapshots[-1].error_refl == pytest.approx(est.rms_refl)
 

@@ -422,6 +422,14 @@ class NoiseTally:
         """The sums of B per input triangle (the area-weighted mean of its patches: radiosity.npz's B)."""
         return self._scaled(self.triangle_factors)
 
+    def estimate(self, ambient: np.ndarray) -> Estimate:
+        """The estimate as the target holds it (``sums``) with the clusters' own bias (``pool_bias``),
+        and B per input triangle and per element beside it; ``ambient``: ``bias_ambient``'s.  O(1)."""
+        est = combine(self.sums(), ambient, self.pool_bias)
+        est.triangles_refl = finite(combine(self.triangle_sums(), ambient, self.pool_bias).rms_refl)
+        est.elements_refl = finite(combine(self.element_sums(), ambient, self.pool_bias).rms_refl)
+        return est
+
     def _scaled(self, factors: tuple[float, float, float]) -> NoiseSums:
         s = self._sums
         fd, fb, fr = factors

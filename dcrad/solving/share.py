@@ -50,7 +50,7 @@ import numpy as np
 
 from dcrad.choices import Choice, Choices
 from dcrad.config import SolverConfig
-from dcrad.estimate.noise import Estimate, NoiseTally, bias_ambient, combine, finite
+from dcrad.estimate.noise import Estimate, NoiseTally, bias_ambient, finite
 from dcrad.meshing.patches import Patches
 from dcrad.outputs.report import RunBooks
 from dcrad.solving.accuracy import final_plan, resolve
@@ -291,12 +291,8 @@ def blend(patches: Patches, replicas: list[Replica]) -> tuple[Shot, NoiseTally]:
 
 def estimate_of(patches: Patches, noise: NoiseTally, shot: Shot) -> Estimate:
     """The shared run's estimate as the target holds it, with B per input triangle and per element
-    beside it (``Solver.estimate``'s three readings)."""
-    ambient = bias_ambient(shot.tallies, shot.ledger.held(), patches.total_area, patches.mean_rho)
-    est = combine(noise.sums(), ambient)
-    est.triangles_refl = finite(combine(noise.triangle_sums(), ambient).rms_refl)
-    est.elements_refl = finite(combine(noise.element_sums(), ambient).rms_refl)
-    return est
+    beside it (``NoiseTally.estimate``, as ``Solver.estimate``)."""
+    return noise.estimate(bias_ambient(shot.tallies, shot.ledger.held(), patches.total_area, patches.mean_rho))
 
 
 def gather_share(patches: Patches, config: SolverConfig, tracer: Tracer, shot: Shot, rows: np.ndarray, index: int,

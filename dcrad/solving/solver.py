@@ -845,11 +845,7 @@ class Solver:
         within ``noise.SHOWN_SLACK`` of it), with ``triangles_refl`` and ``elements_refl`` beside it:
         noise and unshot bias (noise.py); O(1)."""
         p = self.patches
-        ambient = bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho)
-        est = combine(self.noise.sums(), ambient, self.noise.pool_bias)
-        est.triangles_refl = finite(combine(self.noise.triangle_sums(), ambient, self.noise.pool_bias).rms_refl)
-        est.elements_refl = finite(combine(self.noise.element_sums(), ambient, self.noise.pool_bias).rms_refl)
-        return est
+        return self.noise.estimate(bias_ambient(self.tallies, self.ledger.held(), p.total_area, p.mean_rho))
 
     def unshot_bias(self) -> float:
         """The estimate's bias from the light still unshot alone (the clusters' spread left out), over
