@@ -29,7 +29,7 @@ from dcrad.transport.rays import Tracer  # noqa: E402
 def one(patches, tracer, config: SolverConfig, phase: str | None, after: float) -> tuple[float, float, str]:
     """(seconds from when the request was due to run's return, seconds in the final gather undisturbed,
     stop reason).  The request is due ``after`` s into ``phase``; a phase is timed from its start
-    (the solver's ``gather`` and ``final`` wrapped; the shooting from the first batch after the
+    (the solver's ``direct.gather`` and ``final.round`` wrapped; the shooting from the first batch after the
     gather), so a phase that never polls ``should_stop`` shows its whole remaining length."""
     patches.reset()
     solver = Solver(patches, config, tracer=tracer)
@@ -41,11 +41,11 @@ def one(patches, tracer, config: SolverConfig, phase: str | None, after: float) 
             return method(*args, **kwargs)
         return call
 
-    solver.gather = timed("direct gather", solver.gather)  # type: ignore[method-assign]
-    solver.final = timed("final gather", solver.final)  # type: ignore[method-assign]
+    solver.direct.gather = timed("direct gather", solver.direct.gather)  # type: ignore[method-assign]
+    solver.final.round = timed("final gather", solver.final.round)  # type: ignore[method-assign]
 
     def should_stop() -> bool:
-        if solver.gathered and not solver.finalised and solver.stats.batches > 0:
+        if solver.direct.tried and not solver.final.done and solver.stats.batches > 0:
             seen.setdefault("shooting", time.perf_counter())
         return phase is not None and phase in seen and time.perf_counter() >= seen[phase] + after
 

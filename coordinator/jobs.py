@@ -1,8 +1,10 @@
-"""Jobs: validate a scene, partition it, run the barrier loop on workers, write results.
+"""Jobs: validate a scene, choose its strategy, run it on workers, write results.
 
-Each job runs ``dcrad.division.divide.run_divided`` (the same loop as in-process runs) in
-a thread, over ``RemoteSubscene`` handles; progress after every barrier is
-kept on the job and pushed to watchers on the event loop.
+Each job runs in a thread the strategy objects ``dcrad solve`` runs in process
+(``dcrad.runs``): ``Shared`` through ``RemoteShares``, or ``Divided`` on
+``WorkersBackend`` (``RemoteSubscene`` handles); this module wires them to the
+service.  Progress after every barrier or phase is kept on the job and pushed to
+watchers on the event loop.
 
 For the web status page (``coordinator.web``) the job thread also keeps, at
 barriers, a small preview image and the assembled radiosity at geometrically
@@ -24,31 +26,31 @@ import uuid
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from dcrad.choices import Choice
 from dcrad.config import SolverConfig, unused_divide_note
-from dcrad.division.divide import DivideConfig, assemble, run_divided, subscene_specs
-from dcrad.division.placement import check_subscenes, expected_work, placement
+from dcrad.division.divide import DivideConfig
+from dcrad.division.placement import check_subscenes
 from dcrad.errors import ConfigError, DcradError
 from dcrad.outputs import render
 from dcrad.outputs.report import residual_estimate
-from dcrad.pipeline import divided_books, finish_run, output_views, prepare, scene_settings
+from dcrad.pipeline import finish_run, output_views, prepare, scene_settings
+from dcrad.runs import Divided, RunHooks, Shared
 from dcrad.settings import from_pb
 from dcrad.solving.accuracy import resolve
-from dcrad.solving.share import run_shared, shared_books
-from dcrad.solving.strategy import on_workers
+from dcrad.solving.strategy import Strategy, on_workers
 from dcrad.transport.optics import opaque_for
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import estimate_to_pb, ledger_to_pb
 
 from .ahead import ViewsAhead
 from .display import BarrierDisplay, ErrorCurve, LivePreview, MemoryLog, background
-from .remote import NoWorkers, RemoteSubscene, WorkerPool
+from .divided import WorkersBackend
+from .remote import NoWorkers, WorkerPool
 from .shared import Cancelled, RemoteShares
-from .store import CheckpointWriter, JobRecord, JobStore, Resume, StoredPreview
+from .store import JobRecord, JobStore, Resume, StoredPreview
 
 log = logging.getLogger("dcrad.coordinator")
 
@@ -121,17 +123,6 @@ class Job:
                 self._waiters.remove((loop, ev))
 
 
-@dataclass
-class PieceArea:
-    """What assembly reads of a clipped piece (``divide.assemble``) once its patches are on
-    its worker: their areas.  The coordinator keeps no piece geometry through the solve."""
-
-    area: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.area)
-
-
 def _record_fields(obj: Job | JobRecord) -> dict:
     """The ``JobRecord`` fields of a job or a record (a Job holds every one of them)."""
     return {f.name: getattr(obj, f.name) for f in dataclasses.fields(JobRecord)}
@@ -198,13 +189,6 @@ class JobManager:
         log.warning("job %s resumes from barrier %d (%.1f s in) after a coordinator restart",
                  job.id, resume.barrier, resume.elapsed)
         return resume
-
-    @staticmethod
-    def _left(config: SolverConfig, resume: Resume | None) -> SolverConfig:
-        """A resumed job's time limit counts the time it ran before the restart."""
-        if resume is None or not config.time_limit:
-            return config
-        return dataclasses.replace(config, time_limit=max(1e-3, config.time_limit - resume.elapsed))
 
     def _reload(self) -> None:
         """Every job under the data folder: ended ones are listed and fetchable; the others
@@ -350,140 +334,47 @@ class JobManager:
             if self._solve_shared(job, scene, patches, size, config, timings, mem, strategy.why):
                 return
             strategy = on_workers(config, receivers, len(patches), live, spec.divide.subscenes, exact_lights=False)
+        self._solve_divided(job, scene, patches, size, config, timings, mem, strategy)
+
+    def _solve_divided(self, job: Job, scene, patches, size: float, config: SolverConfig, timings: dict,
+                       mem: MemoryLog, strategy: Strategy) -> None:
+        """The job divided into subscenes on the workers (``runs.Divided`` on ``WorkersBackend``)."""
+        spec = job.spec
         divide = self._divide(spec, strategy.subscenes)
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide
-        t0 = time.perf_counter()
+        job.divide = dataclasses.asdict(divide)  # a resumed job cuts the same
         # at nice 19 it takes the core the partition leaves idle, and little from the workers: started
         # after the loading on the workers it had to finish after the solve (the 20x20 office's
         # outputs waited 2.1 s for it)
         views = self._views_ahead(job, scene, patches)
-        # specs (arrays), not Subscenes: the coordinator builds no Embree scene for them
-        subs, boundaries, parents, part = subscene_specs(patches, config, divide)
-        job.subscenes = len(subs)
-        folder = job.root / "checkpoints"
-        handles = [RemoteSubscene(job.id, s, self.pool, self.rpc_timeout, folder) for s in subs]
-        resume = self._resume_handles(job, handles)
-        mem("partition")
-        job.state, job.started = "running", time.time() - (resume.elapsed if resume else 0.0)
-        job.divide = dataclasses.asdict(divide)
-        self._save(job)
-        writer = CheckpointWriter(folder, start_barrier=resume.barrier if resume else 0)
-        display = None
-        try:
-            # subscenes on workers by expected work (their lamps' power and patch count: LPT,
-            # placement.placement), so no worker carries the two brightest cells; results do not
-            # depend on it, only which worker waits at a barrier
-            workers = self.pool.live()
-            slots = placement([expected_work(s.patches) for s in subs], len(workers)) if workers else []
-            # all at once: a worker reads one subscene while it builds another's Embree scene, and
-            # the coordinator writes one's static file while it streams another (20x20 office,
-            # 4 subscenes: 4.8 s one after another)
-            with ThreadPoolExecutor(max_workers=len(handles), thread_name_prefix=f"place-{job.id}") as ex:
-                list(ex.map(lambda i: handles[i].place(prefer=workers[slots[i]] if workers else None),
-                            range(len(handles))))
-            timings["setup_s"] = time.perf_counter() - t0  # partition, clip, load on the workers
-            job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
-            # the pieces' patches are on the workers (and in static-K.ck): keep their areas only
-            pieces: list[Any] = [PieceArea(s.patches.area) for s in subs]
-            del subs
-            mem("load on workers")
-
-            job.preview = LivePreview(scene, patches, job.root / "live", self.preview_size, self.preview_interval,
-                                      views)
-            job.curve.folder = job.root / "curve"
-            done = {"rays": 0, "bytes_relayed": 0}  # counted into the metrics so far
-            piece_area = np.concatenate([p.area for p in pieces])
-            splits = np.cumsum([len(p) for p in pieces])[:-1]
-
-            def assemble_b(values):
-                return assemble(len(patches), patches.area, parents, pieces, np.split(values, splits))
-
-            display = BarrierDisplay(assemble_b, job.curve, job.preview, self.count)
-            accuracy = resolve(config).accuracy  # the target every Progress reports (fixed for the job)
-
-            def on_barrier(run):
-                writer.submit(run.barriers, {h.cell: h.checkpoint_path for h in handles}, time.time() - job.started,
-                              run.crossing)
-                values = np.concatenate([h.radiosity() for h in handles])  # the display thread's copy
-                job.residual = run.ledger.residual()
-                job.workers = sorted({h.worker.address for h in handles})
-                # the live estimate over the clipped pieces (same area; no assembly here)
-                progress = self._progress(job, run, handles, values, piece_area, accuracy)
-                job.updates.append(progress)
-                display.offer(progress.job.elapsed_s, run.barriers, values)
-                now = {"rays": progress.rays, "bytes_relayed": progress.bytes_relayed}
-                self.count(barriers=1, **{k: max(0, now[k] - done[k]) for k in now})
-                done.update(now)
-                job.notify()
-                mem("barrier")
-
-            def interrupt():
-                for h in handles:
-                    h.interrupt()
-
-            job.on_cancel.append(interrupt)
-            if job.cancel.is_set():  # cancelled while it loaded
-                interrupt()
-            with ThreadPoolExecutor(max_workers=len(handles)) as ex:
-                run = run_divided(handles, boundaries, self._left(config, resume), divide.batches_per_barrier, ex,
-                                  on_barrier=on_barrier, should_stop=job.cancel.is_set,
-                                  first_barrier=resume.barrier if resume else 0,
-                                  crossing=resume.crossing if resume else -1.0)
-            writer.close()
-            display.close()  # the curve's last states are in (their preview is the outputs')
-            mem("solve")
-
-            # Results: the same files as `dcrad solve`
-            patches.radiosity = assemble(len(patches), patches.area, parents, pieces,
-                                         [h.radiosity() for h in handles])
-            unshot = [h.saved_arrays({"unshot"})["unshot"] for h in handles]
-            patches.unshot = assemble(len(patches), patches.area, parents, pieces, unshot)
-            del unshot
-            parents.clear()  # assembled: the outputs need the patch table only
-            pieces.clear()
-            shown = job.preview
-            shown.close()  # its view goes before the outputs; the final state's preview is theirs
-            job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), run.barriers)
-            timings["solve_s"] = run.wall_seconds
-            books = divided_books(run, patches, config, boundaries, part, divide, timings)
-            books.divided = (books.divided or {}) | {
-                "reassigned": [h.reassigned for h in handles],
-                "bytes_relayed": sum(h.bytes_relayed for h in handles),
-                "checkpoint_bytes": sum(h.checkpoint_bytes for h in handles),
-                "compute_seconds": [h.compute_s for h in handles],
-                "rpc_seconds": [h.rpc_seconds for h in handles],
-                "preview_seconds": job.preview.seconds,
-                "display_seconds": display.seconds,
-                "display_cpu_seconds": display.cpu_seconds,
-                "checkpoints": {k: v for k, v in writer.stats.items() if k != "per_barrier"},
-            }
-            books.choices.insert(0, strategy.why)
-            if resume is not None:
-                books.choices.add("resumed", f"resumed from barrier {resume.barrier} after a coordinator restart "
-                                     f"(checkpoints on disk)")
-            job.workers = sorted({h.worker.address for h in handles if h.worker is not None})
-            for h in handles:  # the workers free the subscenes now, not after the outputs
-                h.drop()
-            mem("assembly")
-            books.divided["coordinator_rss_mb"] = dict(mem.phases)
-            settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
-                                      spec.solver.workplane)
-            made = self._views(views)
-            job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
-                                    spec.preview_height or 480, extra={"error_curve": self.curve_dict(job)},
-                                    views=made, painter=self._painter(job, made))
-            mem("outputs")
-            if shown.barrier != run.barriers:  # the status page shows the result's own preview (not rendered twice)
-                self._final_preview(job, run.barriers)
-            job.residual = run.ledger.residual()
-            job.state = "cancelled" if run.stopped_by == "stopped" else "done"
-        finally:
-            job.on_cancel.clear()
-            writer.close()
-            if display is not None:
-                display.close()
-            for h in handles:
-                h.drop()
+        backend = WorkersBackend(self, job, scene, patches, views, mem, config)
+        divided = Divided(divide, backend)
+        backend.assemble = lambda values: divided.assemble(values)
+        books = divided.run(patches, config, RunHooks(should_stop=job.cancel.is_set, on_barrier=backend.on_barrier),
+                            timings)
+        run = divided.run_state
+        mem("assembly")
+        shown = job.preview
+        assert isinstance(shown, LivePreview)  # WorkersBackend.open made it
+        shown.close()  # its view goes before the outputs; the final state's preview is theirs
+        job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), run.barriers)
+        books.divided = (books.divided or {}) | backend.service_figures()
+        books.choices.insert(0, strategy.why)
+        if backend.resume is not None:
+            books.choices.add("resumed", f"resumed from barrier {backend.resume.barrier} after a coordinator "
+                                         f"restart (checkpoints on disk)")
+        books.divided["coordinator_rss_mb"] = dict(mem.phases)
+        settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
+                                  spec.solver.workplane)
+        made = self._views(views)
+        job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
+                                spec.preview_height or 480, extra={"error_curve": self.curve_dict(job)},
+                                views=made, painter=self._painter(job, made))
+        mem("outputs")
+        if shown.barrier != run.barriers:  # the status page shows the result's own preview (not rendered twice)
+            self._final_preview(job, run.barriers)
+        job.residual = run.ledger.residual()
+        job.state = "cancelled" if run.stopped_by == "stopped" else "done"
 
     def _solve_shared(self, job: Job, scene, patches, size: float, config: SolverConfig, timings: dict,
                       mem: MemoryLog, why: Choice) -> bool:
@@ -522,26 +413,29 @@ class JobManager:
             job.notify()
             mem(f"shared {name}")
 
+        strategy = Shared(k, shares, where=lambda: (f"{len(shares.used)} worker process(es): "
+                                                    f"{', '.join(sorted(shares.used))}"))
         try:
-            run = run_shared(patches, config, k, shares, on_phase=on_phase, should_stop=job.cancel.is_set)
+            books = strategy.run(patches, config, RunHooks(should_stop=job.cancel.is_set, on_phase=on_phase), timings)
         except Cancelled:
             job.state, job.error = "cancelled", "cancelled while its shares ran: no results"
             return True
         finally:
             shares.drop()
             display.close()
-        if run is None:
+        if books is None:
             log.info("job %s: its lights make no exact form factors; it divides the scene instead", job.id)
             job.state = "queued"
             return False
+        run = strategy.run_state
+        shared = strategy.section
         self.count(rays=run.stats.rays)
         job.residual = run.ledger.residual()
+        if not job.updates:  # stopped before its first phase ended: no progress was sent
+            job.updates.append(pb.Progress(job=job.summary(), accuracy=accuracy))
         last = job.updates[-1]
         last.ledger.CopyFrom(ledger_to_pb(run.ledger))
         last.shots = run.stats.shots
-        timings["solve_s"] = run.stats.wall_seconds
-        where = f"{len(shares.used)} worker process(es): {', '.join(sorted(shares.used))}"
-        books, shared = shared_books(run, patches, config, timings, where=where)
         books.choices.insert(0, why)
         unused = unused_divide_note(from_pb(DivideConfig, spec.divide, subscenes=1),
                                     f"was shared by {len(shares.used)} worker(s), each holding the whole scene")

@@ -8,7 +8,8 @@ stays on its worker from phase to phase (its pilot, its final gather's rounds ar
 held there).  A share is a
 pure function of its inputs, so one whose worker is lost (``remote.LOST``) runs
 again on another live worker with the same result; a worker that lost the patch
-table (restarted) gets it again.  A stop request cancels the calls in flight.
+table (restarted) gets it again.  A stop request reaches the workers in every phase (``_watching``):
+their shares end at their next batch.
 The direct and gather phases have more shares than workers (``share.work_shares``),
 taken one at a time by each worker as it comes free (``_queued``); the gather's shot
 solution goes to each worker once.
@@ -20,6 +21,7 @@ import logging
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import grpc
 import numpy as np
@@ -28,13 +30,16 @@ from dcrad.config import SolverConfig
 from dcrad.errors import DcradError
 from dcrad.settings import to_pb
 from dcrad.solving.share import Replica, tally_from_arrays, tally_to_arrays
-from dcrad.transport.direct import shared_rate
+from dcrad.transport.direct import GatherStopped, shared_rate
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, share_phase
 
 from .remote import LOST, NoWorkers, WorkerEntry, WorkerPool
 
 log = logging.getLogger("dcrad.coordinator")
+
+#: seconds between two looks at the job's stop request while a phase's shares run
+STOP_POLL = 0.2
 
 
 class Cancelled(DcradError):
@@ -55,6 +60,8 @@ class RemoteShares:
         self._calls: list = []
         self._lock = threading.Lock()
         self.cancelled = False
+        #: a stop was asked of the workers (``stop``): a share they end early answers CANCELLED
+        self.stopping = False
         self.shot_on: set[str] = set()  #: addresses holding the gather's shot solution (sent once each)
         #: set while no request is streaming: the job's display waits for it (a preview rendered while
         #: the gather's shot streamed to the workers held the coordinator's GIL: 0.75 s to read 19 MB)
@@ -126,6 +133,9 @@ class RemoteShares:
             except grpc.RpcError as exc:
                 if self.cancelled:
                     raise Cancelled("cancelled") from None
+                if self.stopping and exc.code() == grpc.StatusCode.CANCELLED:
+                    # a pilot or direct share ended by the stop: nothing of the gather is booked
+                    raise GatherStopped(f"{phase} share {index} stopped") from None
                 if exc.code() not in LOST:
                     raise DcradError(f"worker {w.address} refused {phase} share {index}: {exc.details()}") from None
                 log.warning("job %s: worker %s lost during %s share %d (%s); it runs elsewhere", self.job_id,
@@ -197,15 +207,36 @@ class RemoteShares:
             results[i] = self._call(phase, i, n, inputs[i])
         return [r if r is not None else {} for r in results]
 
-    def direct(self, shares: list[np.ndarray]):
+    @contextmanager
+    def _watching(self, should_stop):
+        """While a phase runs: ``should_stop()`` True asks the workers to stop (``stop``), polled
+        every STOP_POLL s, so that a stop is answered at the workers' next batch in every phase."""
+        done = threading.Event()
+        if should_stop is not None:
+            def watch():
+                while not done.wait(STOP_POLL):
+                    if should_stop():
+                        self.stop()
+                        return
+            threading.Thread(target=watch, name=f"share-stop-{self.job_id}", daemon=True).start()
+        try:
+            yield
+        finally:
+            done.set()
+
+    def direct(self, shares: list[np.ndarray], should_stop=None):
         """Each share's pilot, then its gather at the shared rate (``direct.shared_rate``): the pilot
-        stays on its worker in between; a worker that lost it pilots again (same stream, same light)."""
+        stays on its worker in between; a worker that lost it pilots again (same stream, same light).
+        A stop (``should_stop``) raises direct.GatherStopped, as ``LocalShares.direct``."""
         rows = [{"rows": np.asarray(r, np.int64)} for r in shares]
-        pilots = self._queued("pilot", rows)
-        if any(not a for a in pilots):
-            return [None] * len(shares)
-        rate = shared_rate([(float(a["pilot"][0]), float(a["pilot"][1])) for a in pilots])
-        out = self._queued("direct", [r | {"rate": np.array([rate])} for r in rows])
+        with self._watching(should_stop):
+            pilots = self._queued("pilot", rows)
+            if any(not a for a in pilots):
+                return [None] * len(shares)
+            rate = shared_rate([(float(a["pilot"][0]), float(a["pilot"][1])) for a in pilots])
+            if self.stopping:
+                raise GatherStopped("stopped between the pilots and the gather")
+            out = self._queued("direct", [r | {"rate": np.array([rate])} for r in rows])
         return [tally_from_arrays(a, len(self.patches)) if a else None for a in out]
 
     def replicas(self, direct, k: int, should_stop=None, time_left: float = 0.0) -> list[Replica]:
@@ -213,39 +244,31 @@ class RemoteShares:
         tally = {f"tally_{name}": v for name, v in tally_to_arrays(direct).items()}
         if time_left:
             self.settings.time_limit = time_left
-        stop = threading.Event()
-        watcher = None
-        if should_stop is not None:
-            def watch():
-                while not stop.wait(0.2):
-                    if should_stop():
-                        self.stop()
-                        return
-            watcher = threading.Thread(target=watch, name=f"share-stop-{self.job_id}", daemon=True)
-            watcher.start()
-        try:
+        with self._watching(should_stop):
             out = self._all("replica", [tally] * k)
-        finally:
-            stop.set()
         return [Replica.from_arrays(a, len(self.patches)) for a in out]
 
-    def gather(self, shot, shares: list[np.ndarray], rounds: list[int]):
-        """[(sum_a, sum_b, rays traced)] of each share's final gather after ``rounds``."""
+    def gather(self, shot, shares: list[np.ndarray], rounds: list[int], should_stop=None):
+        """[(sum_a, sum_b, rays traced)] of each share's final gather after ``rounds``; a stop
+        (``should_stop``) ends each share's round at its next batch (the receivers reached keep it)."""
         inputs = shot.to_arrays() | {"rounds": np.asarray(rounds, np.int64)}
         if len(rounds) == 1:  # a new shot: the placements were the direct shares'
             self.shot_on.clear()
             for i in range(len(shares)):
                 self.placed.pop(i, None)
         # after the first round a share's gather so far is held on its worker: it stays there
-        out = self._queued("gather", [inputs | {"rows": np.asarray(r, np.int64)} for r in shares],
-                           sticky=len(rounds) > 1)
+        with self._watching(should_stop):
+            out = self._queued("gather", [inputs | {"rows": np.asarray(r, np.int64)} for r in shares],
+                               sticky=len(rounds) > 1)
         for a, rows in zip(out, shares):
             if any(name not in a or np.shape(a[name]) != (len(rows), 3) for name in ("sum_a", "sum_b")):
                 raise DcradError("a worker's gather share does not match its receivers")
         return [(a["sum_a"], a["sum_b"], int(a["traced"][0])) for a in out]
 
     def stop(self) -> None:
-        """Ask every worker holding the job to end its replica cleanly (it returns what it has)."""
+        """Ask every worker holding the job to end its share cleanly: a replica or a gather returns what
+        it has, a pilot or direct share answers CANCELLED (``_call``: GatherStopped)."""
+        self.stopping = True
         header = pb.ShareHeader(job_id=self.job_id, phase=share_phase("stop"))
         for w in self.pool.live():
             try:

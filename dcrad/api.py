@@ -2,7 +2,7 @@
 
 ``dcrad/__init__.py`` lists the API and imports this module when one of its names is first
 used, so that ``import dcrad`` stays cheap.  Both functions call the pipeline every other
-path runs (``pipeline.prepare``, ``pipeline.solve_single``, ``pipeline.finish_run``): the
+path runs (``pipeline.prepare``, ``runs.Single``, ``pipeline.finish_run``): the
 numbers and the report are those of ``dcrad solve --workers 0``.
 """
 
@@ -26,6 +26,7 @@ from dcrad.estimate.noise import Estimate
 from dcrad.io.export import input_triangle_radiosity
 from dcrad.io.scene import Scene, load_scene
 from dcrad.meshing.patches import Patches
+from dcrad.runs import RunHooks, Single
 from dcrad.transport.emitters import Emitter
 from dcrad.transport.luminaires import load_schedule
 
@@ -117,11 +118,12 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
         # the file's own lights (glTF) first, then these: the mesh is refined for them too
         sources=lambda sc: (*sources, *(load_schedule(luminaires, sc, scale) if luminaires is not None else ())))
     timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
-    books, tracer = pipeline.solve_single(patches, config, timings, on_progress, should_stop)
+    single = Single()
+    books = single.run(patches, config, RunHooks(should_stop=should_stop, on_batch=on_progress), timings)
     folder = Path(out) if out is not None else None
     report = pipeline.finish_run(folder, scene, books, pipeline.scene_settings(scene, size, scale, two_sided,
                                                                                 workplane),
-                                 width, height, tracer=tracer)
+                                 width, height, tracer=single.tracer)
     for w in report["warnings"]:
         log.warning(w)
     per_triangle, valid = input_triangle_radiosity(books.patches, len(scene.faces))

@@ -20,6 +20,7 @@ import shutil
 import signal
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -67,13 +68,26 @@ def _config(args) -> SolverConfig:
     return from_args(SolverConfig, args)
 
 
-class _Interrupt:
-    """First Ctrl-C asks the solver to stop cleanly; the second one aborts."""
+class Stopped(KeyboardInterrupt):
+    """A stop before the solve started: there is nothing to write (``main``: exit 130)."""
 
-    def __init__(self):
+
+class _Interrupt:
+    """First Ctrl-C asks the solver to stop cleanly; the second one aborts.  ``before``: until
+    ``running()`` is called (the scene is loaded and meshed, the solve starts), the first one ends
+    the command at once with that phase named: there are no results to write yet."""
+
+    def __init__(self, before: str = ""):
         self.requested = False
+        self.before = before
+
+    def running(self) -> None:
+        self.before = ""
 
     def __call__(self, signum, frame):
+        if self.before:
+            self.requested = True
+            raise Stopped(f"stopped {self.before}: nothing solved, no results written")
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
@@ -85,6 +99,9 @@ class _Interrupt:
     def should_stop(self) -> bool:
         return self.requested
 
+
+#: seconds between two looks at a stop request by the thread that tells the coordinator
+STOP_POLL = 0.1
 
 #: signals that stop a solve like Ctrl-C: `timeout`, `kill` and a closed terminal send the others
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -121,8 +138,14 @@ def cmd_solve(args) -> int:
         if args.workers is None:
             args.workers = 0
             choice = Choice("workers", "solved in this process: luminaires (--luminaires) run in one process for now")
-    if args.workers is None:  # the default: divide only where it pays
-        args.workers, choice, loaded = _auto_workers(args, Path(args.out))
+    # caught from the start: a stop while the scene loads and meshes ends the command at once
+    stop = _Interrupt(before="while the scene loaded and meshed")
+    previous = _catch(stop)
+    try:
+        if args.workers is None:  # the default: divide only where it pays
+            args.workers, choice, loaded = _auto_workers(args, Path(args.out))
+    finally:
+        _restore(previous)
     check_workers(args.workers)
     if args.subscenes < 0:
         raise ConfigError(f"--subscenes must be >= 1 (or 0: one per worker), not {args.subscenes}")
@@ -134,7 +157,6 @@ def cmd_solve(args) -> int:
         return code
     rules = resolve(config)
     bar = ProgressBar(rules.tol, force=args.progress, accuracy=rules.accuracy)
-    stop = _Interrupt()
     previous = _catch(stop)
 
     def on_progress(solver):
@@ -153,7 +175,7 @@ def cmd_solve(args) -> int:
                               width=args.width, height=args.height, divide=divide, planes=planes or None,
                               up=args.up, two_sided=args.two_sided, workplane=args.workplane,
                               loaded=(loaded[0], loaded[1], loaded[3]) if loaded is not None else None,
-                              luminaires_path=args.luminaires)
+                              luminaires_path=args.luminaires, on_meshed=stop.running)
     finally:
         _restore(previous)
     final = SimpleNamespace(**report["error"]) if report.get("error") else None
@@ -298,6 +320,18 @@ def _summary(report: dict, out: Path) -> None:
 
 def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
     """`dcrad solve --workers N`: a coordinator and N workers on loopback, then submit/watch/fetch."""
+    if args.planes:
+        raise DcradError("--planes works in process only (--workers 0)")
+    # caught from the start: a stop before the job runs ends the command at once (``_Interrupt``)
+    stop = _Interrupt(before="while the workers started and the coordinator loaded and meshed the scene")
+    previous = _catch(stop)
+    try:
+        return _run_embedded(args, config, out, stop)
+    finally:
+        _restore(previous)
+
+
+def _run_embedded(args, config: SolverConfig, out: Path, stop: "_Interrupt") -> int:
     import json
 
     from coordinator import client
@@ -305,9 +339,6 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
     from dcrad.errors import SolveError
     from dcrad.pipeline import resolve_scene
 
-    if args.planes:
-        raise DcradError("--planes works in process only (--workers 0)")
-    stop = _Interrupt()
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
         from dcrad.io.scene import load_scene
 
@@ -332,19 +363,21 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
             if cluster.web_url:
                 print(f"dcrad: status page {cluster.web_url}/jobs/{job.job_id} (while this runs)", file=sys.stderr)
             bar = client.WatchBar(config.tol, force=args.progress)
-            cancelled: list[bool] = []
-            previous = _catch(stop)
+            stop.running()
+            watching = threading.Event()
 
-            def on_progress(p):
-                bar(p)
-                if stop.requested and not cancelled:
-                    client.cancel(cluster.address, job.job_id)
-                    cancelled.append(True)
+            def send_cancel() -> None:
+                # at once, not at the next progress message: a phase may send none for many seconds
+                while not watching.wait(STOP_POLL):
+                    if stop.requested:
+                        client.cancel(cluster.address, job.job_id)
+                        return
 
+            threading.Thread(target=send_cancel, name="dcrad-stop", daemon=True).start()
             try:
-                last = client.watch(cluster.address, job.job_id, on_progress)
+                last = client.watch(cluster.address, job.job_id, bar)
             finally:
-                _restore(previous)
+                watching.set()
                 bar.close()
             if last is None or last.job.state not in ("done", "cancelled"):
                 raise SolveError(f"job {job.job_id} {last.job.state if last else 'vanished'}: "
@@ -495,6 +528,9 @@ def main(argv=None) -> int:
     except DcradError as exc:
         print(f"dcrad: error: {exc}", file=sys.stderr)
         return 2
+    except Stopped as exc:
+        print(f"dcrad: {exc}", file=sys.stderr)
+        return 130
     except KeyboardInterrupt:
         print("dcrad: aborted", file=sys.stderr)
         return 130

@@ -19,9 +19,8 @@ from types import SimpleNamespace
 import numpy as np
 
 import scenes
-from dcrad.choices import Choice, Choices
-from dcrad.config import SolverConfig, unused_divide_note
-from dcrad.division.divide import build_subscenes, run_subscenes
+from dcrad.choices import Choice
+from dcrad.config import SolverConfig
 from dcrad.errors import ConfigError, SceneError
 from dcrad.io import export
 from dcrad.io.scene import NO_EMITTERS, load_scene
@@ -29,15 +28,13 @@ from dcrad.meshing import mesh
 from dcrad.meshing.patches import Patches
 from dcrad.outputs import photometry, render
 from dcrad.outputs.report import TIMINGS, RunBooks, run_report, write_json
-from dcrad.solving.accuracy import describe, noise_floor_note, resolve
-from dcrad.solving.passes import solve_to_accuracy
-from dcrad.solving.solver import GREY_CHOICE, Stats
-from dcrad.solving.stiffness import stiff_choice
+from dcrad.runs import Divided, RunHooks, Single
+from dcrad.solving.solver import Stats
 from dcrad.transport import luminaires, optics, punctual
 from dcrad.transport.rays import Tracer
 
-__all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "solve_single",
-           "resolve_scene", "divided_books", "finish_run"]
+__all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "resolve_scene",
+           "finish_run"]
 
 log = logging.getLogger("dcrad")
 
@@ -405,71 +402,6 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
     return written
 
 
-def dense_twin_bytes(boundaries) -> int:
-    """Bytes dense twin buffers would hold: a sent and a pending buffer (RGB float64) for each
-    crossing of every portal cell and direction bin."""
-    return sum(2 * b.n_cells * b.n_bins * 2 * 3 * 8 for b in boundaries)
-
-
-def divided_books(run, patches: Patches, config: SolverConfig, boundaries, part, divide,
-                  timings: dict[str, float] | None = None) -> RunBooks:
-    """The books of a divided run (in process or on workers) from its last barrier's states.
-
-    ``patches`` holds the assembled B.  The report's ``divided`` section is in
-    ``books.divided``; the coordinator adds its service figures to it.
-    """
-    config = resolve(config, patches.read_units)  # the settings the run used (ray density, stop rule)
-    states = run.states
-    last = run.snapshots[-1]
-    stats = Stats(shots=last.shots, rays=last.rays, batches=sum(s.batches for s in states),
-                  barriers=run.barriers, trace_seconds=float(sum(s.trace_seconds for s in states)),
-                  wall_seconds=run.wall_seconds, stopped_by=run.stopped_by)
-    back = np.zeros(max(len(patches.names), 1))
-    for s in states:
-        back[: len(s.back_by_obj)] += s.back_by_obj[: len(back)]
-    choices = Choices()
-    if patches.is_grey and len(patches):
-        choices.add("grey", GREY_CHOICE)
-    delivered = sum(s.twins_delivered for s in states)
-    blocks = sum(s.twin_blocks for s in states)
-    # dense: a sent and a pending buffer for each crossing of every portal cell and bin
-    dense = dense_twin_bytes(boundaries) if divide.mode == "binned" else None
-    if divide.mode == "binned":
-        choices.add("subscenes", f"twin buffers are sparse: at most {run.max_twin_bytes} bytes held, "
-                       f"against {dense} bytes dense (sent and pending, every portal cell, bin "
-                       f"and crossing)")
-        if config.adaptive_bins and delivered:
-            choices.add("subscenes", f"directional resolution where the energy is: {delivered} twin entries "
-                           f"arrived, kept as {blocks} direction blocks (light weaker than one ray "
-                           f"shares coarser bins)")
-    else:
-        choices.add("subscenes", f"boundaries forward each crossing ray exactly (no direction bins, which blur light "
-                       f"where a boundary crosses open space): at most {run.max_twin_bytes} bytes of rays "
-                       f"held at a barrier")
-    if run.stiff is not None:
-        choices.add("stiff", stiff_choice(run.stiff, config) + " (for the whole divided job)")
-    divided = {"subscenes": len(states), "boundaries": len(boundaries), "barriers": run.barriers,
-               "mode": divide.mode, "iterations": divide.iterations,
-               "barrier_batches": f"adaptive, at most {divide.max_iterations}" if divide.adaptive
-               else divide.iterations, "solid": divide.solid,
-               "max_twin_bytes": run.max_twin_bytes, "max_barrier_closure": max(run.barrier_closures),
-               "twins_delivered": delivered, "twin_blocks": blocks, "dense_twin_bytes": dense,
-               "partition": part.as_dict(), "barrier_goals": [round(g, 4) for g in run.goals]}
-    landed = [g for g in run.goals if g > 0]
-    if landed:
-        choices.add("barriers",
-                    f"{len(landed)} barrier(s) aimed at the target: each subscene left {landed[-1]:.2f} of its "
-                       f"residual, not a quarter, for the estimate to land just below it (divide.landing_goal)")
-    choices.add("accuracy", describe(config))
-    if run.stopped_by == "noise_floor":
-        choices.add("noise_floor",
-                    noise_floor_note(run.estimate, config.accuracy) + "; a divided run shoots its direct "
-                       "light, where one process (--workers 0) or a shared run gathers it")
-    return RunBooks(patches, config, run.ledger, stats, list(run.snapshots), run.snapshot_B, back,
-                    choices, dict(timings or {}), divided, estimate=run.estimate,
-                    channels=1 if patches.is_grey and len(patches) else 3, stiff=run.stiff)
-
-
 def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, width: int = 640, height: int = 480,
                extra: dict | None = None, tracer: Tracer | None = None, views: OutputViews | None = None,
                painter=None) -> dict:
@@ -525,30 +457,6 @@ def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, wid
     return report
 
 
-def solve_single(patches: Patches, config: SolverConfig, timings: dict | None = None, on_progress=None,
-                 should_stop=None, divide=None) -> tuple[RunBooks, Tracer]:
-    """Solve ``patches`` in this process as one subscene (no partition, no boundaries, no twins) to
-    ``config``'s target: the run's books and the Embree scene it traced, for the outputs to reuse.
-    ``timings`` (the load's) gains ``setup_s`` and ``solve_s``; ``divide``: the DivideConfig the
-    caller was given, whose divided-run flags the report says were not used.  ``solve_to`` (one
-    subscene) and ``dcrad.solve`` run this."""
-    t0 = time.perf_counter()
-    tracer = Tracer.mesh(patches)
-    t_setup = time.perf_counter() - t0
-    solver = solve_to_accuracy(patches, config, tracer, on_progress=on_progress, should_stop=should_stop)
-    solver.choices.add("subscenes", "one subscene: no partition, no boundaries, no twin buffers")
-    unused = unused_divide_note(divide, "was one subscene in this process")
-    if unused:
-        solver.choices.add("unused_flags", unused)
-        log.warning(unused)
-    solver.choices.add("accuracy", describe(solver.config))
-    if solver.stats.stopped_by == "noise_floor":
-        solver.choices.add("noise_floor", noise_floor_note(solver.estimate(), solver.config.accuracy))
-    books = RunBooks.of_solver(solver, {**(timings or {}), "setup_s": t_setup, "solve_s": solver.stats.wall_seconds})
-    # the solver's tallies (noise, pool) go with it, before the outputs; the Embree scene is reused
-    return books, tracer
-
-
 class _DividedView:
     """What the progress bar reads, for a divided run."""
 
@@ -588,6 +496,7 @@ def solve_to(
     workplane: float = 0.0,
     loaded: tuple | None = None,
     luminaires_path: str | os.PathLike | None = None,
+    on_meshed=None,
 ) -> dict:
     """Load, solve and write everything to ``out``; return the report dict.
 
@@ -595,6 +504,8 @@ def solve_to(
     process; one subscene (the default) uses the plain solver: no partition, no twins.
     ``up``, ``two_sided``, ``workplane``: scene settings (see scene_settings).  ``loaded``: see prepare.
     ``luminaires_path``: a luminaire schedule (luminaires.load_schedule) lighting the scene too.
+    ``on_meshed()``: told once the scene is loaded and meshed, as the solve starts (the CLI's stop
+    handler: before it, a stop ends the command; after it, the solve stops and writes its results).
     """
     config = config or SolverConfig()
     out = Path(out)
@@ -605,28 +516,26 @@ def solve_to(
                                    sources=None if luminaires_path is None else
                                    lambda sc: luminaires.load_schedule(luminaires_path, sc, scale))
     t_load = time.perf_counter() - t0 + (loaded[1] if loaded is not None else 0.0)
+    if on_meshed is not None:
+        on_meshed()
 
-    t0 = time.perf_counter()
-    tracer = None
+    hooks = RunHooks(should_stop=should_stop, on_batch=on_progress)
+    timings = {"load_and_mesh_s": t_load, **phases}
+    strategy: Single | Divided
     if divide is not None and divide.subscenes > 1:
         glass = optics.opaque_for(patches, "divided")
         if glass is not None:
             scene.warnings.append(glass)
-        progress = (lambda run: on_progress(_DividedView(run))) if on_progress else None
-        subs, boundaries, parents, part = build_subscenes(patches, config, divide,
-                                                          planes=scene.planes_to_internal(planes))
-        t_setup = time.perf_counter() - t0
-        run = run_subscenes(patches, subs, boundaries, parents, config, divide,
-                            on_barrier=progress, should_stop=should_stop)
-        timings = {"load_and_mesh_s": t_load, **phases, "setup_s": t_setup, "solve_s": run.wall_seconds}
-        books = divided_books(run, patches, config, boundaries, part, divide, timings)
+        if on_progress is not None:
+            hooks.on_barrier = lambda run: on_progress(_DividedView(run))
+        strategy = Divided(divide, planes=scene.planes_to_internal(planes))
     else:
-        books, tracer = solve_single(patches, config, {"load_and_mesh_s": t_load, **phases}, on_progress,
-                                     should_stop, divide)
+        strategy = Single(divide)
+    books = strategy.run(patches, config, hooks, timings)
 
     # the settings as run: automatic ones (ray density, tol) resolved (accuracy.resolve)
     report = finish_run(out, scene, books, scene_settings(scene, size, scale, two_sided, workplane), width, height,
-                        tracer=tracer)
+                        tracer=strategy.tracer if isinstance(strategy, Single) else None)
     for w in report["warnings"]:
         log.warning(w)
     return report

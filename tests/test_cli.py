@@ -6,6 +6,7 @@ import json
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -201,6 +202,22 @@ def test_ctrl_c_stops_cleanly_and_writes_results(tmp_path):
     assert report["stats"]["stopped_by"] == "stopped"
     assert report["ledger"]["closure"] < 1e-9
     assert (out / "preview.png").exists() and (out / "radiosity.npz").exists()
+
+
+def test_a_stop_while_the_scene_loads_ends_the_command_at_once(tmp_path):
+    """SIGTERM while a large scene is still being written, loaded and meshed: the command ends
+    promptly (nothing to solve yet, so nothing to write), exit 130, one line naming the phase,
+    no traceback and no report."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen([*DCRAD, "solve", "office:rows=10,cols=10", "--workers", "0", "--out", str(out)],
+                            stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    time.sleep(3.0)  # imported, the handler in place; the 10x10 office takes far longer to load and mesh
+    assert proc.poll() is None, proc.communicate()[1]
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "stopped while the scene loaded and meshed: nothing solved, no results written" in stderr
+    assert "Traceback" not in stderr and not (out / "report.json").exists()
 
 
 @pytest.mark.parametrize("mode", ["binned", "exact"])

@@ -364,7 +364,7 @@ def test_a_divided_run_on_its_noise_floor_says_so(tmp_path):
     """Cornell at 3% in four subscenes: the shot direct light's noise (about 3.8%) stays above the
     target once every subscene is at its local target; the run stops there as on its noise floor,
     and the report says what would lower it (it was "stalled", which reads as a fault)."""
-    from dcrad.pipeline import divided_books
+    from dcrad.division.books import divided_books
 
     _, p, _ = prepare(scenes.write_builtin("cornell", tmp_path), 0.015)
     cfg = SolverConfig(accuracy=0.03, seed=1)

@@ -163,7 +163,7 @@ def test_a_luminous_panel_through_a_pane_gathered_and_shot_agree(tmp_path):
         solver = solve_to_accuracy(patches, SolverConfig(accuracy=0.03, seed=8, direct=direct))
         assert solver.ledger.closure() < 1e-9
         if direct:
-            assert solver.direct_light is not None, solver.choices  # gathered through the pane
+            assert solver.direct.light is not None, solver.choices  # gathered through the pane
         floor = np.array([patches.names[o].startswith("floor") for o in patches.obj])
         a = patches.area[floor]
         floors[direct] = ((patches.radiosity - patches.emission)[floor, 0], a, solver.estimate().rms_refl)

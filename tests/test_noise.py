@@ -114,7 +114,7 @@ def test_an_expert_density_is_not_calibrated(uniform_furnace):
     patches.reset()
     s = solve_to_accuracy(patches, SolverConfig(seed=17, accuracy=0.05, direct=False, rays_per_power=5e4), tracer)
     assert not s.choices.of("density")
-    assert s.density() == pytest.approx(5e4) or s.choices.of("passes")
+    assert s.budget.density() == pytest.approx(5e4) or s.choices.of("passes")
 
 
 def test_divided_estimate_combines_subscenes(uniform_furnace):
@@ -325,11 +325,11 @@ def test_a_final_gather_round_moves_reflected_light_but_not_its_total(uniform_fu
     patches.reset()
     s = Solver(patches, SolverConfig(seed=3, tol=1e-3, rays_per_power=2e4, direct=True), tracer=tracer)
     s.run()
-    assert s.direct_light is not None
+    assert s.direct.light is not None
     before = patches.radiosity.copy()
     books = s.ledger.copy().as_arrays()
     total = ((before - patches.emission) * patches.area[:, None]).sum(axis=0)
-    assert s.final(32) == 32 * len(patches)
+    assert s.final.round(32) == 32 * len(patches)
     after = ((patches.radiosity - patches.emission) * patches.area[:, None]).sum(axis=0)
     np.testing.assert_allclose(after, total, rtol=1e-12)
     assert np.abs(patches.radiosity - before).max() > 0

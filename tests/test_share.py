@@ -30,6 +30,7 @@ from dcrad.solving.share import (
     Shot,
     receiver_shares,
     run_shared,
+    shared_books,
     tally_from_arrays,
     tally_to_arrays,
     work_shares,
@@ -232,6 +233,66 @@ def test_a_cancelled_shared_job_ends_with_what_it_has(office, tmp_path):
     report = json.loads(bytes(files["report.json"]))
     assert report["stats"]["stopped_by"] == "stopped" and report["shared"]["gather_rounds"] == []
     assert report["ledger"]["closure"] < 1e-10
+
+
+def test_a_shared_job_cancelled_before_its_direct_light_ends_with_b_equal_e(office, tmp_path):
+    """Cancelled at once, before or during its direct shares (which ask the workers to stop, as the
+    replicas do): the job ends cancelled, not divided, with its outputs written: B = E, all the
+    light unshot, the books closed, and the report says the direct gather was stopped."""
+    with LocalCluster(workers=2, data=tmp_path) as cluster:
+        job = submit(cluster.address, office, {"accuracy": 0.003, "seed": 4})
+        with grpc.insecure_channel(cluster.address) as ch:
+            pb_grpc.CoordinatorStub(ch).Cancel(pb.JobRef(job_id=job.job_id), timeout=10)
+        progress = watch(cluster.address, job.job_id)
+        assert progress[-1].job.state == "cancelled", progress[-1].job.error
+        files = fetch(cluster.address, job.job_id)
+    report = json.loads(bytes(files["report.json"]))
+    assert report["stats"]["stopped_by"] == "stopped" and report["stats"]["shots"] == 0
+    assert report["shared"]["replica_rays"] == [] and report["divided"] is None
+    assert report["ledger"]["closure"] < 1e-10
+    assert any(c["code"] == "direct" and c["text"].startswith("direct gather stopped") for c in report["choices"])
+    npz = np.load(io.BytesIO(bytes(files["radiosity.npz"])))
+    assert np.array_equal(npz["patch_B"], npz["patch_emission"])
+    assert np.array_equal(npz["patch_unshot"], npz["patch_emission"])
+
+
+def test_a_stop_in_a_shared_run_s_direct_or_gather_phase_ends_it_there(table, monkeypatch):
+    """In process (LocalShares, the workers' reference): a stop during the direct shares leaves
+    B = E with every watt unshot and booked so; a stop during a gather round loses that round
+    only: B is the shot solution's, the run says it stopped, and its books close."""
+    from dcrad.transport import direct as direct_mod
+
+    patches, tracer = table
+    monkeypatch.setattr(direct_mod, "CHUNK_PAIRS", 2000)  # several runs of cells: a stop lands between
+    cfg = SolverConfig(accuracy=ACCURACY, seed=5)
+    calls = [0]
+
+    def after(n):
+        def should_stop() -> bool:
+            calls[0] += 1
+            return calls[0] > n
+        return should_stop
+
+    patches.reset()
+    run = run_shared(patches, cfg, 2, LocalShares(patches, cfg, tracer), should_stop=after(1))
+    assert run is not None and run.stats.stopped_by == "stopped" and run.replicas == [] and run.rounds == []
+    assert np.array_equal(patches.radiosity, patches.emission)
+    assert np.allclose(run.ledger.unshot, run.ledger.emitted, rtol=1e-12) and run.ledger.closure() < 1e-12
+    books, shared = shared_books(run, patches, cfg)
+    assert shared["replica_rays"] == [] and books.stats.stopped_by == "stopped"
+
+    class StopInGather(LocalShares):
+        def gather(self, shot, shares, rounds, should_stop=None):
+            self.shot_b = shot.radiosity.copy()
+            return super().gather(shot, shares, rounds, lambda: True)
+
+    patches.reset()
+    cfg = cfg.replace(batch_rays=1024, max_rays_per_shot=1024)  # a round of several batches: the stop lands between two
+    shares = StopInGather(patches, cfg, tracer)
+    run = run_shared(patches, cfg, 2, shares)
+    assert run.stats.stopped_by == "stopped" and run.rounds == [] and run.gather_rays == 0
+    assert len(run.replicas) == 2 and np.array_equal(patches.radiosity, shares.shot_b)
+    assert run.ledger.closure() < 1e-10
 
 
 def test_explicit_subscenes_divide_instead(office, tmp_path):

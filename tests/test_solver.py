@@ -344,7 +344,7 @@ def test_a_ray_budget_coarsens_the_whole_plan_to_fit(office_reference, budget, m
     s = Solver(p, cfg)
     st = s.run()
     assert any(c.text.startswith("ray budget: --max-rays") and "coarsened" in c.text for c in s.choices.of("budget"))
-    assert 0.9 * budget <= st.rays <= budget and st.stopped_by == "ray_budget" and s._final is not None
+    assert 0.9 * budget <= st.rays <= budget and st.stopped_by == "ray_budget" and s.final.gather is not None
     est, meas = s.estimate(), _measured_refl(p, ref, ref_noise)
     assert est.bias_refl < cfg.accuracy  # the light is all but shot (it was 74% of the reflected light at 1e6)
     assert meas < most and 0.7 < est.elements_refl / meas < 1.4
@@ -372,7 +372,7 @@ def test_the_final_gather_keeps_to_the_time_limit(office_reference, monkeypatch)
     assert st.stopped_by == "time_limit" and s.elapsed() <= 1.9
     line = next(c.text for c in s.choices.of("budget") if c.text.startswith("time limit: the final gather cut"))
     cut, planned = (int(x) for x in re.findall(r"cut to (\d+) rays .*planned (\d+)\)", line)[0])
-    assert planned == 32 and 2 <= cut < planned and s._final is not None and 2 * s._final.per_half >= cut
+    assert planned == 32 and 2 <= cut < planned and s.final.gather is not None and 2 * s.final.gather.per_half >= cut
     assert not any("coarsened" in c.text for c in s.choices)
     assert _measured_refl(p, ref, ref_noise, per_triangle=True) < 0.05
 
@@ -398,23 +398,23 @@ def test_a_stop_in_the_final_gather_ends_it_within_a_batch(tmp_path):
     _, p, _ = prepare(scenes.write_builtin("cornell", tmp_path), 0.03)
     solver = Solver(p, SolverConfig(seed=2, batch_rays=65536))
     shot: dict = {}
-    final = solver.final
+    final = solver.final.round
 
     def spy(rays, should_stop=None):
         shot.setdefault("b", p.radiosity.copy())
         return final(rays, should_stop)
 
-    solver.final = spy  # type: ignore[method-assign]
+    solver.final.round = spy  # type: ignore[method-assign]
     asked = []
 
     def should_stop() -> bool:
-        if solver.finalised:
+        if solver.final.done:
             asked.append(True)
         return bool(asked)
 
     solver.run(should_stop=should_stop)
     assert solver.stats.stopped_by == "stopped" and "b" in shot
-    gather = solver._final
+    gather = solver.final.gather
     assert gather is not None and gather.stopped and len(asked) == 1  # asked once: between the first two batches
     reached = gather.rec[gather.counts > 0]
     untouched = gather.rec[gather.counts == 0]
@@ -447,7 +447,7 @@ def test_a_stop_in_the_direct_gather_abandons_it_within_a_run_of_cells(tmp_path,
         return len(polls) > 1
 
     solver.run(should_stop=should_stop)
-    assert solver.stats.stopped_by == "stopped" and solver.direct_light is None
+    assert solver.stats.stopped_by == "stopped" and solver.direct.light is None
     assert any(c.text.startswith("direct gather stopped") for c in solver.choices.of("direct"))
     np.testing.assert_array_equal(p.radiosity, p.emission)
     np.testing.assert_array_equal(p.unshot, p.emission)

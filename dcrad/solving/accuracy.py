@@ -23,7 +23,7 @@ follows a ``FinalPlan`` instead: it shoots the reflected light at a small share 
 the density, stops shooting once the bias is below FINAL_BIAS_SHARE of the target
 (``final_gather``), gathers the reflected light again with many rays per receiver
 (final.py) and tops that gather up while the estimate is above the target
-(solve.Solver.finish); ``noise_floor`` then means the gather could not get there.
+(final_phase.FinalPhase.finish); ``noise_floor`` then means the gather could not get there.
 
 With ``tol`` > 0 a run stops at that residual instead and ``accuracy`` is not
 used (it reads 0 in the resolved settings); ``rays_per_power`` is then 2e5

@@ -24,7 +24,7 @@ __all__ = ["blend", "solve_to_accuracy", "settle", "PASS_SEED", "PASS_GROWTH", "
 PASS_SEED = 7919
 #: a further pass is at most this many times denser than the pass before
 PASS_GROWTH = 4.0
-#: a first pass that shoots its light spends this share of the density (Solver.calibrate)
+#: a first pass that shoots its light spends this share of the density (Budget.calibrate)
 CALIBRATION = 0.25
 #: the sparsest a pass after a calibrated one may be, against it
 SPARSER = 0.5
@@ -65,7 +65,7 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
     """
     solver = Solver(patches, config, tracer=tracer)
     if not config.rays_per_power:  # the density is the run's own choice: measure the scene's noise first
-        solver.calibration = CALIBRATION
+        solver.budget.calibration = CALIBRATION
     solver.run(on_progress=on_progress, should_stop=should_stop)
     goal = solver.config.accuracy
     passes = 1
@@ -85,19 +85,19 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
         # and never more than PASS_GROWTH times denser: a pass's own noise can be far above what its
         # density predicts (a lamp in a fixture), and escalating by the ratio can ask for 4e9 rays per
         # emitted power, which no run can pay
-        # ... except after a calibrated first pass (Solver.calibrate), which shot at a share of the
+        # ... except after a calibrated first pass (Budget.calibrate), which shot at a share of the
         # density: the next one starts from what it spent, may be sparser (its noise follows its
         # density: the ice-cream store's first pass read 2.18% at 3.9e6 rays per emitted power, and a
         # second pass as dense would pay twice for 1.8%) and may grow to PASS_GROWTH times the whole
         # density (a uniform furnace needed 6.7x its first pass, and at 4x ended on its noise floor)
         calibrated = passes == 1 and bool(solver.choices.of("density"))
-        density = solver.density() if calibrated else cfg.rays_per_power
-        growth = PASS_GROWTH / solver.calibration if calibrated else PASS_GROWTH
+        density = solver.budget.density() if calibrated else cfg.rays_per_power
+        growth = PASS_GROWTH / solver.budget.calibration if calibrated else PASS_GROWTH
         # (10% more than the noise asks, but after a calibrated pass, whose noise was measured at a
         # density like the next one's: MARGIN is margin enough)
         want = max((est.noise_refl / target) ** 2 * (1.0 if calibrated else 1.1), SPARSER if calibrated else 1.0)
         rpp = density * min(want, growth)
-        shot = solver.gathered and solver.direct_light is None and not solver.final_rays
+        shot = solver.direct.tried and solver.direct.light is None and not solver.final.rays
         if want > growth:
             earlier.add("pass", f"pass {passes + 1}: the target would want {want:.3g}x the density of pass {passes}; "
                            f"held to {growth:g}x (passes.PASS_GROWTH)")
@@ -109,7 +109,7 @@ def solve_to_accuracy(patches, config: SolverConfig, tracer=None, on_progress=No
                                              seed=config.seed + passes * PASS_SEED), tracer=solver.tracer)
         # the pass before decided to shoot its direct light after a gather on every receiver (its
         # pilot): the decision stands, and its shadow rays are not paid twice
-        solver.gathered = shot
+        solver.direct.tried = shot
         solver.bias_cap = BIAS_SHARE * goal
         solver.settled = True  # the clusters settle on the blend, whose noise is lower (below)
         solver.stats.rays, solver.stats.shots, solver.stats.batches = done.rays, done.shots, done.batches

@@ -62,7 +62,7 @@ class Rounds:
 
 def gather_rounds(first: int, config: SolverConfig, receivers: int, spent, trace, error, halted,
                   on_first=None) -> Rounds:
-    """The final gather's rounds, one driver for a run in one process (Solver.finish) and a shared
+    """The final gather's rounds, one driver for a run in one process (FinalPhase.finish) and a shared
     run (share.run_shared): a first round of ``first`` rays a receiver cut to what the limits leave
     (fit_round; ``on_first(rays, limit)`` is told before it is traced); then, in accuracy mode, while
     ``error()`` is above the target, a top-up round (top_up: (error / target)^2 x FINAL_MARGIN rays a

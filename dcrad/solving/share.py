@@ -11,7 +11,7 @@ bench/RESULTS.md).  A shared run keeps it and divides the work instead:
    (``work_shares``: DIRECT_SHARES_PER_WORKER a worker, in sizes that halve from each
    round of k runs to the next, taken by the workers big ones first as they come
    free); each share gathers the exact direct light of its run
-   (``Solver.direct_pilot``: the cost is per receiver-light pair, not per ray, so
+   (``DirectPhase.pilot``: the cost is per receiver-light pair, not per ray, so
    splitting receivers is what divides it), its pilot first; the shadow rays left
    after the pilots go to every share's penumbrae at one rate (``direct.shared_rate``),
    as in one gather of every receiver.  The tallies are merged
@@ -54,6 +54,7 @@ from dcrad.estimate.noise import Estimate, NoiseTally, bias_ambient, finite
 from dcrad.meshing.patches import Patches
 from dcrad.outputs.report import RunBooks
 from dcrad.solving.accuracy import final_plan, resolve
+from dcrad.solving.direct_phase import GATHER_STOPPED
 from dcrad.solving.energy import ACCOUNTS, MAGNITUDES, Ledger
 from dcrad.solving.rounds import budget_cut_note, fit_round, gather_rounds
 from dcrad.solving.solver import ReplicaRole, Snapshot, Solver, Stats
@@ -143,12 +144,12 @@ def direct_pilot(patches: Patches, config: SolverConfig, tracer: Tracer, rows: n
                  index: int, should_stop=None) -> AnalyticGather | None:
     """Share ``index``'s exact direct gather over ``rows``, after its pilot (its ``need`` and
     ``weight`` set the shared rate, ``direct.shared_rate``); None: the lights make no exact
-    polygons, or there is no final plan (``Solver.direct_pilot``).  Its random stream is
+    polygons, or there is no final plan (``DirectPhase.pilot``).  Its random stream is
     (seed, DIRECT_STREAM, index), so a share piloted again gathers the same light.  ``should_stop()``
     True between two runs of cells raises direct.GatherStopped (a worker's share of a cancelled job)."""
     solver = Solver(patches, config, tracer=tracer)
     rng = np.random.default_rng([solver.config.seed, DIRECT_STREAM, index])
-    return solver.direct_pilot(np.asarray(rows, np.int64), rng, should_stop)
+    return solver.direct.pilot(np.asarray(rows, np.int64), rng, should_stop)
 
 
 def direct_share(patches: Patches, config: SolverConfig, tracer: Tracer, rows: np.ndarray, index: int,
@@ -167,7 +168,7 @@ class Replica:
     unshot: np.ndarray
     diff: np.ndarray  #: half-solution difference D (noise.py)
     diff_unshot: np.ndarray
-    direct: np.ndarray  #: (n,3) W of direct light each patch got (``Solver.direct_light``)
+    direct: np.ndarray  #: (n,3) W of direct light each patch got (``DirectPhase.light``)
     direct_a: np.ndarray  #: half A's part of it
     tallies: np.ndarray  #: (4,3) return tallies
     ledger: Ledger
@@ -229,11 +230,11 @@ def run_replica(patches: Patches, config: SolverConfig, tracer: Tracer, direct: 
     solver.run(should_stop=should_stop)
     st, est = solver.stats, solver.estimate()
     n = len(patches)
-    full, half_a = solver.direct_light if solver.direct_light is not None else (np.zeros((n, 3)), np.zeros((n, 3)))
+    full, half_a = solver.direct.light if solver.direct.light is not None else (np.zeros((n, 3)), np.zeros((n, 3)))
     return Replica(patches.radiosity.copy(), patches.unshot.copy(), solver.noise.diff.copy(),
                    solver.noise.unshot.copy(), full, half_a, solver.tallies.copy(), solver.ledger.copy(),
                    solver.back_by_obj.copy(), st.shots, st.rays, st.batches, st.trace_seconds, st.wall_seconds,
-                   st.stopped_by, solver.final_rays if solver.final_pending() else 0, Choices(solver.choices),
+                   st.stopped_by, solver.final.rays if solver.final.pending() else 0, Choices(solver.choices),
                    solver.stiff, {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
                                   for k, v in est.as_dict().items()})
 
@@ -346,24 +347,28 @@ class LocalShares:
         self.tracer = tracer if tracer is not None else Tracer.mesh(patches)
         self.held: dict[int, FinalGather] = {}  #: each share's final gather so far
 
-    def direct(self, shares: list[np.ndarray]) -> list[DirectTally | None]:
-        pilots = [direct_pilot(self.patches, self.config, self.tracer, rows, i) for i, rows in enumerate(shares)]
+    def direct(self, shares: list[np.ndarray], should_stop=None) -> list[DirectTally | None]:
+        """Each share's exact direct gather (None each: no exact-form-factor lights); ``should_stop()``
+        True between two runs of cells raises direct.GatherStopped."""
+        pilots = [direct_pilot(self.patches, self.config, self.tracer, rows, i, should_stop)
+                  for i, rows in enumerate(shares)]
         if any(g is None for g in pilots):
             return [None] * len(shares)
         rate = shared_rate([(g.need, g.weight) for g in pilots if g is not None])
-        return [g.finish(rate) if g is not None else None for g in pilots]
+        return [g.finish(rate, should_stop) if g is not None else None for g in pilots]
 
     def replicas(self, direct: DirectTally, k: int, should_stop=None, time_left: float = 0.0) -> list[Replica]:
         """The k replicas (one after another here); ``time_left`` s (0: no limit) for each."""
         cfg = self.config.replace(time_limit=time_left) if time_left else self.config
         return [run_replica(self.patches, cfg, self.tracer, direct, i, k, should_stop) for i in range(k)]
 
-    def gather(self, shot: Shot, shares: list[np.ndarray], rounds: list[int]):
-        """[(sum_a, sum_b, rays traced)] of each share."""
+    def gather(self, shot: Shot, shares: list[np.ndarray], rounds: list[int], should_stop=None):
+        """[(sum_a, sum_b, rays traced)] of each share; a stop (``should_stop``) raises
+        direct.GatherStopped (the round is lost: a share cut short has no usable sums)."""
         out = []
         for i, rows in enumerate(shares):
             fg, traced = gather_share(self.patches, self.config, self.tracer, shot, rows, i, rounds,
-                                      self.held.get(i))
+                                      self.held.get(i), should_stop)
             self.held[i] = fg
             out.append((fg.sum_a, fg.sum_b, traced))
         self.patches.radiosity = shot.radiosity
@@ -390,7 +395,12 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     t0 = time.perf_counter()
     emission = patches.emission.copy()
     parts = work_shares(patches, k)  # the final gather's
-    tallies = shares.direct(work_shares(patches, k, DIRECT_SHARES_PER_WORKER))
+    try:
+        if should_stop is not None and should_stop():  # asked before it began (while it loaded)
+            raise GatherStopped
+        tallies = shares.direct(work_shares(patches, k, DIRECT_SHARES_PER_WORKER), should_stop)
+    except GatherStopped:  # as a run in one process stopped in its gather: B = E, nothing booked
+        return stopped_in_direct(patches, cfg, k, time.perf_counter() - t0)
     if any(t is None for t in tallies):
         return None
     direct = merged_direct(tallies, patches)
@@ -414,10 +424,10 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
                  Snapshot(time.perf_counter() - t0, sum(r.shots for r in replicas), shot_rays, shot.ledger.residual(),
                           shot.ledger.closure(), finite(est.rms), finite(est.rms_refl))]
     snapshot_B = [emission, b_direct, patches.radiosity.copy()]
-    # the final gather of the average, split by receivers, topped up as Solver.finish does:
+    # the final gather of the average, split by receivers, topped up as FinalPhase.finish does:
     # the job's plan (the replicas' is at 1/k of the density): the gather is not split by rays
     plan = final_plan(cfg, len(patches))
-    # the replicas' plan: a budget coarsens it alike in each (Solver.fit_budget)
+    # the replicas' plan: a budget coarsens it alike in each (Budget.fit)
     first = min(r.final_rays for r in replicas) if plan is not None and all(r.final_rays for r in replicas) else 0
     rounds: list[int] = []
     gather_rays = 0
@@ -440,9 +450,15 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
         est_now: list = []
 
         def trace(more: int) -> None:
-            nonlocal gather_rays
+            nonlocal gather_rays, stopped
             rounds.append(more)
-            for (sum_a, sum_b, traced), at in zip(shares.gather(shot, parts, rounds), pos):
+            try:
+                got = shares.gather(shot, parts, rounds, should_stop)
+            except GatherStopped:  # the round is lost; B stays what the rounds before left
+                rounds.pop()
+                stopped = "stopped"
+                return
+            for (sum_a, sum_b, traced), at in zip(got, pos):
                 fg.sum_a[at], fg.sum_b[at] = sum_a, sum_b
                 gather_rays += traced
             fg.per_half = sum(rounds) // 2
@@ -453,11 +469,12 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
             if on_phase is not None:
                 on_phase("gather", time.perf_counter() - t0, shot_rays + gather_rays, est_now[0])
 
-        # the rounds are Solver.finish's (rounds.gather_rounds), each split by receivers over the shares
+        # the rounds are FinalPhase.finish's (rounds.gather_rounds), each split by receivers over the shares
         budget_cut = gather_rounds(first, cfg, receivers,
                                    spent=lambda: (shot_rays + gather_rays, time.perf_counter() - t0), trace=trace,
                                    error=lambda: est_now[0].rms_refl,
-                                   halted=lambda: should_stop is not None and should_stop(), on_first=first_cut).by
+                                   halted=lambda: stopped == "stopped" or (should_stop is not None and should_stop()),
+                                   on_first=first_cut).by
         if est_now:
             est = est_now[0]
     else:
@@ -466,6 +483,8 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     seconds["gather_s"] = time.perf_counter() - t1
     wall = time.perf_counter() - t0
     rays = shot_rays + gather_rays
+    if not stopped and should_stop is not None and should_stop():
+        stopped = "stopped"
     if not stopped:
         stopped = "accuracy" if est.rms_refl <= cfg.accuracy else budget_cut or "noise_floor"
     stats = Stats(shots=sum(r.shots for r in replicas), rays=rays, batches=sum(r.batches for r in replicas),
@@ -478,6 +497,24 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     choices = Choices([c for c in replicas[0].choices if c.code not in ("direct", "plan", "final_gather")] + cut)
     return SharedRun(k, shot.ledger, shot.tallies, est, stats, replicas, direct_rays, gather_rays, rounds, seconds,
                      snapshots, snapshot_B, choices)
+
+
+def stopped_in_direct(patches: Patches, config: SolverConfig, k: int, seconds: float) -> SharedRun:
+    """A shared run stopped during its direct shares: nothing of the gather is booked and nothing
+    was shot, so B = E and all the emitted light is unshot (as ``DirectPhase.gather`` leaves a run in one
+    process stopped there, ``GATHER_STOPPED``); its estimate is the unshot light's bias alone."""
+    patches.radiosity = patches.emission.copy()
+    patches.unshot = patches.emission.copy()
+    power = patches.unshot_power.copy()
+    ledger = Ledger(emitted=power.copy())
+    ledger.unshot = power
+    ledger.unshot_abs = power.copy()
+    noise = NoiseTally(patches)
+    est = noise.estimate(bias_ambient(np.zeros((4, 3)), ledger.held(), patches.total_area, patches.mean_rho))
+    stats = Stats(wall_seconds=seconds, stopped_by="stopped")
+    snapshots = [Snapshot(0.0, 0, 0, ledger.residual(), ledger.closure(), finite(est.rms), finite(est.rms_refl))]
+    return SharedRun(k, ledger, np.zeros((4, 3)), est, stats, [], 0, 0, [], {"direct_s": seconds},
+                     snapshots, [patches.radiosity.copy()], Choices([Choice("direct", GATHER_STOPPED)]))
 
 
 def _stopped_by(replicas: list[Replica]) -> str:
@@ -494,18 +531,24 @@ def shared_books(run: SharedRun, patches: Patches, config: SolverConfig, timings
     ``shared`` section."""
     cfg = resolve(config, patches.read_units)
     rep = run.replicas
-    back = np.sum([r.back_by_obj for r in rep], axis=0) / len(rep)
+    back = (np.sum([r.back_by_obj for r in rep], axis=0) / len(rep) if rep
+            else np.zeros(max(len(patches.names), 1)))
     stiff = next((r.stiff for r in rep if r.stiff is not None), None)
     choices = Choices(run.choices)
     s = run.seconds
-    choices.add("shared",
-        f"shared run on {run.k} workers ({where}), no subscenes: the final plan (exact direct gather, coarse "
-        f"shooting, final gather) reads the whole scene's light, so the work is split, not space (share.py): "
-        f"each worker gathered the exact direct light of 1/{run.k} of the receivers ({run.direct_rays} shadow rays, "
-        f"{s['direct_s']:.1f} s), shot an independent replica of the reflected light at 1/{run.k} of the density "
-        f"({s['shoot_s']:.1f} s; the replicas were averaged), and gathered the average again for its receivers "
-        f"({'+'.join(str(r) for r in run.rounds) or 0} rays a receiver, {run.gather_rays} rays, "
-        f"{s.get('gather_s', 0.0):.1f} s)")
+    if not rep:
+        choices.add("shared", f"shared run on {run.k} workers ({where}), stopped in its direct shares "
+                              f"({s['direct_s']:.1f} s): nothing was shot")
+    else:
+        choices.add("shared",
+            f"shared run on {run.k} workers ({where}), no subscenes: the final plan (exact direct gather, coarse "
+            f"shooting, final gather) reads the whole scene's light, so the work is split, not space (share.py): "
+            f"each worker gathered the exact direct light of 1/{run.k} of the receivers ({run.direct_rays} shadow "
+            f"rays, "
+            f"{s['direct_s']:.1f} s), shot an independent replica of the reflected light at 1/{run.k} of the density "
+            f"({s['shoot_s']:.1f} s; the replicas were averaged), and gathered the average again for its receivers "
+            f"({'+'.join(str(r) for r in run.rounds) or 0} rays a receiver, {run.gather_rays} rays, "
+            f"{s.get('gather_s', 0.0):.1f} s)")
     from dcrad.solving.accuracy import describe, noise_floor_note  # noqa: PLC0415
 
     choices.add("accuracy", describe(cfg))

@@ -56,31 +56,19 @@ from dcrad.choices import Choice, Choices
 from dcrad.config import SolverConfig
 from dcrad.estimate.noise import Estimate, NoiseTally, bias_ambient, combine, finite
 from dcrad.meshing.patches import Patches
-from dcrad.solving.accuracy import FINAL_BIAS_SHARE, by_accuracy, final_plan, noise_floor, resolve
+from dcrad.solving.accuracy import FINAL_BIAS_SHARE, by_accuracy, noise_floor, resolve
+from dcrad.solving.budget import Budget
+from dcrad.solving.direct_phase import DirectPhase
 from dcrad.solving.energy import Ledger, escaped_light, flipped_normals
-from dcrad.solving.rounds import budget_cut_note, gather_rounds
+from dcrad.solving.final_phase import FinalPhase
 from dcrad.solving.snapshots import SnapshotStore
 from dcrad.solving.stiffness import Stiffness, stiff_choice, stiffness
 from dcrad.transport.direct import (
-    GATHER_MARGIN,
-    MAX_ANALYTIC_RECEIVERS,
-    PILOT_SHARE,
-    AnalyticGather,
     DirectTally,
-    GatherStopped,
-    analytic_lights,
-    gather_analytic,
-    gather_direct,
-    landing_rays,
-    merge,
-    noise_against_shooting,
-    rescale_to_landed,
-    shadow_rays_for,
 )
-from dcrad.transport.emitters import patch_irradiance, sources_power
-from dcrad.transport.final import BRIGHT_SHARE, FinalGather
+from dcrad.transport.emitters import sources_power
 from dcrad.transport.rays import Tracer
-from dcrad.transport.shoot import deposit, landing, patch_rays, ray_offset, trace
+from dcrad.transport.shoot import deposit, landing, patch_rays, trace
 from dcrad.transport.shooters import ShooterPool, pool_size, spatial_order
 
 __all__ = ["Solver", "ReplicaRole", "Snapshot", "solve"]
@@ -91,8 +79,6 @@ RECOUNT_EVERY = 256
 
 
 #: the report's line for a scene whose rho and E are grey
-GATHER_STOPPED = ("direct gather stopped before it finished (a stop request): nothing of it is booked, the "
-                  "emitters' light is left unshot")
 GREY_CHOICE = ("grey scene (every rho and E has equal channels): "
                "one colour channel is tallied and copied to the other two")
 
@@ -166,8 +152,6 @@ class Solver:
         self.tracer = tracer if tracer is not None else Tracer.mesh(patches)
         self.rng = np.random.default_rng(self.config.seed)
         self.ledger = Ledger(emitted=patches.emitted_power + sources_power(patches.sources))
-        #: the light sources that are not patches still to shoot (``shoot_sources``: once, at the start)
-        self._sources_left = list(patches.sources)
         self.ledger.unshot = patches.unshot_power.copy()
         self.ledger.unshot_abs = (np.abs(patches.unshot) * patches.area[:, None]).sum(axis=0)
         #: W (magnitudes) shot by patches, lost (escaped, back faces), landed, kept as unshot:
@@ -200,29 +184,16 @@ class Solver:
         self._since_recount = 0
         #: the two half-solutions' difference, for the error estimate (noise.py)
         self.noise = NoiseTally(patches)
-        #: the direct-light gather was tried (it runs once, at the start of ``run``)
-        self.gathered = False
-        #: (n,3) W of direct light each patch received by the gather, and half A's part (None: shot)
-        self.direct_light: tuple[np.ndarray, np.ndarray] | None = None
-        #: gather rays per receiver of the final gather of the indirect light (final.py; 0: none);
-        #: set when the direct light is gathered from exact form factors in accuracy mode
-        self.final_rays = 0
-        #: the final gather was cut to what a limit left (``fit_round``): "ray_budget" or "time_limit"
-        self.budget_cut = ""
-        #: the final gather has run (it runs once, when the shooting has shot nearly all light)
-        self.finalised = False
-        self._final: FinalGather | None = None
+        #: the phases this run is composed of besides the shooting: the direct light at the start
+        #: (it plans the final gather), the ray plan under a budget, the final gather at the end
+        self.direct = DirectPhase(self)
+        self.budget = Budget(self)
+        self.final = FinalPhase(self)
         #: what a shared run's replica does differently (``ReplicaRole``; the default: a run of its own)
         self.role = ReplicaRole()
         #: the clusters have settled (``settle``: once a run; a later pass of a blend sets it so that they
         #: settle on the blend, passes.py)
         self.settled = False
-        #: rays kept for the final gather under --max-rays (``fit_budget``): the shooting stops short of them
-        self.gather_reserve = 0
-        self._fitted = False  #: ``fit_budget`` has run
-        #: share of the density a first accuracy pass shoots at when its light is all shot (no final
-        #: plan): passes.solve_to_accuracy sets it (``calibrate``); 1: the whole density
-        self.calibration = 1.0
         #: a later pass of a blend stops by accuracy only once its unshot light's bias (over RMS(B - E))
         #: is below this (passes.py): the passes' noise averages down in the blend, their bias does not
         self.bias_cap = math.inf
@@ -433,406 +404,6 @@ class Solver:
         self.commit(batch, tally)
         return self.counted(len(idx), len(batch))
 
-    def shoot_sources(self) -> int:
-        """Spend each light source that is not a patch (emitters.py) once, at the start of the run: its
-        direct light gathered exactly onto the patches (``gather_source``) while the direct gather is on
-        (the default), else shot with rays at the run's power per ray.  What lands is deposited,
-        reflected and shot on like any light, and the ledger books it as emitted (``__init__``) and
-        shot here.  Returns the rays traced."""
-        rays = 0
-        while self._sources_left:
-            source = self._sources_left.pop(0)
-            if float(np.abs(source.power()).sum()) <= 0:
-                continue
-            rays += self.gather_source(source) if self.config.direct else self.shoot_source(source)
-        return rays
-
-    def shoot_source(self, source, n: int | None = None) -> int:
-        """Shoot ``source``'s whole power with ``n`` rays (None: at the run's power per ray), in
-        batches of at most ``batch_rays``; returns the rays traced."""
-        if n is None:
-            n = max(int(math.ceil(float(np.abs(source.power()).sum()) / self.power_per_ray)), self.config.min_rays, 2)
-        rays = 0
-        for lo in range(0, n, self.config.batch_rays):
-            m = min(self.config.batch_rays, n - lo)
-            t0 = time.perf_counter()
-            batch = source.rays(m, self.rng)
-            batch.power = batch.power * (m / n)  # each batch an unbiased estimate of its share
-            tally = self.fire(batch, t0)
-            self.commit(batch, tally)
-            rays += self.counted(1 if lo == 0 else 0, m)
-        return rays
-
-    def gather_source(self, source) -> int:
-        """``source``'s direct light on every patch, exactly: the mean of I cos / d^2 over the patch
-        with shadow rays (emitters.patch_irradiance; a point source has no area, so nothing is
-        sampled but the visibility at three points a patch).  How much of its power lands in all, and
-        what escapes or meets back faces, comes from SOURCE_LANDING_RAYS of its own rays at most
-        (the books close to round-off, as for the emitting patches' gather, direct.rescale_to_landed);
-        the half-solutions differ only by those rays' landed total.  Returns the rays traced."""
-        p = self.patches
-        power = np.asarray(source.power(), np.float64)
-        t0 = time.perf_counter()
-        # the receivers (what reflects); the rays' own hits book the rest (rescale_to_landed)
-        rows = np.flatnonzero((p.area > 0) & p.rho.any(axis=1))
-        glazing = None if p.glazing is None else p.glazing.take(rows)
-        received = patch_irradiance(source, p.corners(rows), p.normal[rows], self.tracer, ray_offset(p), glazing)
-        received *= p.area[rows, None]
-        keep = np.flatnonzero(received.any(axis=1))
-        shadow = len(rows) * 3
-        n = int(min(max(float(np.abs(power).sum()) / self.power_per_ray, 1024.0), SOURCE_LANDING_RAYS))
-        batch = source.rays(n, self.rng)
-        shot = self.fire(batch, t0)
-        landed = shot.received.sum(axis=0)
-        landed_a = shot.received_a.sum(axis=0) if shot.received_a is not None else 0.5 * landed
-        share_a = np.where(landed != 0, landed_a / np.where(landed != 0, landed, 1.0), 0.5)
-        got = received[keep]
-        magnitude = np.abs(got)
-        gathered = DirectTally(got, rows[keep], np.zeros(3), np.zeros(3), np.zeros(len(self.back_by_obj)),
-                               np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
-                               (magnitude * p.rho[rows[keep]]).sum(axis=0), np.zeros(3), got * share_a, shadow)
-        tally = rescale_to_landed(gathered, shot, p)
-        if tally is None:  # its rays landed light where no patch faces it: keep the rays' own result
-            self.commit(batch, shot)
-            self.choices.add("direct", f"{source.name}: its light shot, not gathered: its rays landed light where "
-                                       f"the exact gather found none")
-            return self.counted(1, shadow + n)
-        self.commit(None, tally, shot=power[None, :])
-        return self.counted(1, shadow + n)
-
-    def direct_inputs(self, rows: np.ndarray | None = None):
-        """What the direct gather works from: (emitters, their unshot radiosity, their power (W),
-        shadow rays per receiver, the light polygons or None, the FinalPlan or None); None when
-        nothing emits.  Appends the report's line when the scene is too large for exact form factors.
-        ``rows``: the receivers whose light lists decide between exact and sampled gathers (None:
-        all; a shared run's share decides on its own, and its gather reuses the lists)."""
-        p = self.patches
-        cfg = self.config
-        emitters = np.flatnonzero(p.emission.any(axis=1) & p.unshot.any(axis=1))
-        if len(emitters) == 0:
-            return None
-        amounts = p.unshot[emitters].copy()
-        power = amounts * p.area[emitters, None]
-        shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
-        if self.role.preset_direct is not None:  # gathered by a shared run's workers: exact, with a final plan
-            plan = final_plan(cfg, len(p))
-            if plan is None:
-                raise ValueError("a preset direct gather needs accuracy mode with the direct light gathered")
-            return emitters, amounts, power, plan.shadow_rays, None, plan
-        n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
-        lights = analytic_lights(p, emitters, power, n_receivers, rows)
-        if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
-            self.choices.add(
-                "direct", f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
-                                f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
-        plan = final_plan(cfg, len(p)) if lights is not None else None
-        if plan is not None and p.sources:
-            # the final gather re-estimates all but the gathered direct light, and a source's shot
-            # direct light is not in it: it would be laid out as if it were reflected light
-            plan = None
-            self.choices.add("direct", "no final plan: the scene has light sources that are not patches "
-                                       "(emitters.py), whose direct light the final gather cannot tell apart")
-        if plan is not None and p.glazing is not None and p.glazing.mask.any():
-            plan = None  # final.read_hits reads the first surface a ray meets, a pane too
-            self.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
-                                       "see through yet (the shooting and the direct gather do)")
-        if plan is not None:
-            shadow = plan.shadow_rays
-            if cfg.max_rays:
-                # the whole plan (direct, shooting, gather) coarsened alike to fit the budget (the
-                # shooting and gather are fitted again once the direct light is in: ``fit_budget``)
-                f = self.budget_scale(cfg.max_rays - self.stats.rays,
-                                      shadow * n_receivers + self.plan_rays(plan, n_receivers))
-                shadow = max(int(shadow * f), MIN_BUDGET_SHADOW) if f < 1.0 else shadow  # f = 0: none fit
-        return emitters, amounts, power, shadow, lights, plan
-
-    def direct_pilot(self, rows: np.ndarray, rng: np.random.Generator, should_stop=None) -> AnalyticGather | None:
-        """The exact direct gather of the receivers ``rows`` only, after its pilot pass
-        (``AnalyticGather``: ``finish(rate)`` gathers): one worker's share of a shared run
-        (share.py); None when the scene has no exact-form-factor lights or no final plan (a
-        shared run needs both)."""
-        got = self.direct_inputs(rows)
-        if got is None:
-            return None
-        emitters, _, power, shadow, lights, plan = got
-        if lights is None or plan is None:
-            return None
-        return AnalyticGather(self.patches, self.tracer, emitters, power, lights, shadow, rng,
-                              ray_offset(self.patches), self.config.batch_rays, rows, should_stop)
-
-    def gather(self, should_stop=None) -> int:
-        """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.
-        ``should_stop()`` True between two of the gather's batches abandons it: nothing is booked,
-        the emitters keep their light unshot (``run`` then stops).
-
-        The emitters' power is spent: a modest number of their ordinary rays books
-        how much lands, escapes or meets back faces (exactly, as shooting would),
-        and the gather distributes the landed power over the receivers' fronts.
-        Receivers keep rho of it; shooting goes on with the reflected light.  Exact
-        form factors (``gather_analytic``) when the emitters make few light polygons,
-        else next-event estimation (``gather_direct``).  Kept only when it is quieter
-        than shooting the emitters (``noise_against_shooting``), except in accuracy
-        mode with exact form factors: there the run follows an ``accuracy.FinalPlan``
-        (shoot the reflected light coarsely, gather it again at the end, final.py),
-        which needs the direct light gathered.
-
-        ``preset_direct`` (set by a shared run, share.py): the gather of every receiver, done
-        by the workers' shares; this run books it with its own emitter rays and does not
-        count its shadow rays (the shared run counts them once).
-        """
-        p = self.patches
-        cfg = self.config
-        self.gathered = True
-        got = self.direct_inputs()
-        if got is None:
-            return 0
-        emitters, amounts, power, shadow, lights, plan = got
-        preset = self.role.preset_direct
-        # a pilot on a random share of the receivers decides whether gathering beats shooting
-        receivers = np.flatnonzero(p.rho.any(axis=1))
-        budget = cfg.max_rays - self.stats.rays if cfg.max_rays else 0
-        if preset is None and cfg.max_rays and shadow * len(receivers) > DIRECT_BUDGET_SHARE * budget:
-            # the gather's shadow rays would take most of the ray budget (the office at --max-rays
-            # 1e5: 611k rays, all of them the gather's; at 16 shadow rays, its least under a budget,
-            # still 304k): the emitters are shot, within it (``fit_budget`` sets their density)
-            self.choices.add("direct", f"direct light shot, not gathered: {shadow} shadow rays for each of "
-                                f"{len(receivers)} receiving patches are more than {DIRECT_BUDGET_SHARE:.0%} of "
-                                f"the ray budget ({max(budget, 0)} of --max-rays {cfg.max_rays})")
-            return 0
-        size = min(len(receivers), max(64, int(PILOT_SHARE * len(receivers))))
-        pilot = np.sort(self.rng.choice(receivers, size, replace=False))
-        t0 = time.perf_counter()
-        off = ray_offset(p)
-
-        def gather_for(rows: np.ndarray):
-            if lights is not None:
-                return gather_analytic(p, self.tracer, emitters, power, lights, shadow, self.rng, off,
-                                       cfg.batch_rays, rows, should_stop)
-            return gather_direct(p, self.tracer, emitters, power, shadow, self.rng, off, cfg.batch_rays, rows,
-                                 should_stop)
-
-        how = (f"exact form factors to {len(lights)} light polygon(s), visibility from" if lights is not None
-               else "exact form factors (the shared run's direct shares), visibility from" if preset is not None
-               else "next-event estimation,")
-        # the exact form factors gather every receiver at once (their pilot finds penumbrae by
-        # neighbourhood: on a sparse share of the receivers it would find few), then compare
-        def abandoned(rays: int) -> int:  # a stop request ended the gather: nothing of it is booked
-            self.stats.trace_seconds += time.perf_counter() - t0
-            self.choices.add("direct", GATHER_STOPPED)
-            return self.counted(0, rays) if rays else 0
-
-        try:
-            gathered = preset if preset is not None else gather_for(pilot if lights is None else receivers)
-        except GatherStopped:
-            return abandoned(0)
-        shadow_counted = 0 if preset is not None else gathered.rays
-        self.stats.trace_seconds += time.perf_counter() - t0
-        quiet, loud = noise_against_shooting(p, gathered, power, self.power_per_ray)
-        ratio = math.sqrt(quiet / loud) if loud > 0 else math.inf
-        # a run with a final plan keeps its gather: the cheap path (shoot coarsely, gather again)
-        # needs the direct light gathered, and the noise of shooting it is the noise of a far
-        # denser run (the office: 1.2x the noise of shooting at 1.2e7 rays per power, which
-        # took 30.5M rays to 2%; gathered and finished: 4.3M rays for 1.6%)
-        # ... unless the pilot measured the gather so noisy that matching shooting's noise would take
-        # more shadow rays than shooting the emitted power at the run's density takes rays: a lamp
-        # in a fixture (louvres, a trough) is seen partly by most receivers, and its gather can be
-        # 13x noisier than shooting: the light is shot instead
-        equal = shadow * ratio * ratio * len(receivers)
-        if plan is not None and preset is None and equal > cfg.rays_per_power:
-            self.choices.add(
-                "direct", f"direct light shot, not gathered, and no final gather: the gather's {shadow} shadow "
-                                f"rays per receiving patch gave {ratio:.2f}x the noise of shooting; matching it would "
-                                f"take about {equal:.3g} shadow rays, more than the {cfg.rays_per_power:.3g} rays "
-                                f"shooting the emitted power once takes (its {gathered.rays} shadow rays are counted)")
-            self.final_rays = 0
-            return self.counted(0, gathered.rays)
-        if plan is None and not ratio < GATHER_MARGIN:
-            on = f"on a pilot of {len(pilot)} patches" if lights is None else "on every patch"
-            self.choices.add("direct", f"direct light shot, not gathered: {how} {shadow} shadow rays per patch gave "
-                                f"{ratio:.2f}x the noise shooting the emitters would, {on} (its "
-                                f"{gathered.rays} shadow rays are counted)")
-            return self.counted(0, gathered.rays)
-        if lights is None and preset is None:
-            t0 = time.perf_counter()
-            rest = np.setdiff1d(receivers, pilot, assume_unique=True)
-            try:
-                gathered = merge(gathered, gather_for(rest), p)
-            except GatherStopped:
-                return abandoned(gathered.rays)
-            self.stats.trace_seconds += time.perf_counter() - t0
-        # the emitters' own rays: how much of their power lands (the books), not where
-        total = power.sum(axis=1)
-        n_land = landing_rays(shadow, len(gathered.hit), len(emitters), cfg.batch_rays)
-        counts = np.maximum(np.ceil(n_land * total / total.sum()), 2).astype(np.int64)
-        t0 = time.perf_counter()
-        shot = self.fire(patch_rays(p, emitters, counts, power, self.rng), t0)
-        tally = rescale_to_landed(gathered, shot, p)
-        self.release(emitters, amounts)
-        self.noise.shot(emitters)
-        if tally is None:  # the gather missed light the rays found: keep the rays' own result
-            self.commit(None, shot, shot=power)
-            self.choices.add(
-                "direct", "direct light shot: the gather found no light where the emitters' rays landed some")
-            return self.counted(len(emitters), shadow_counted + int(counts.sum()))
-        self.commit(None, tally, shot=power)
-        full, half_a = np.zeros((len(p), 3)), np.zeros((len(p), 3))
-        full[tally.hit], half_a[tally.hit] = tally.received, tally.received_a
-        self.direct_light = (full, half_a)
-        self.choices.add("direct", f"direct light gathered ({how} {shadow} shadow rays per receiving patch, "
-                            f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
-                            f"the emitters book how much of it lands, escapes or meets back faces")
-        if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
-            self.final_rays = self.role.planned_final_rays or plan.final_rays
-            self.power_per_ray = float(self.ledger.emitted.sum()) / (plan.shoot_rays_per_power * self.role.shoot_share)
-            # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
-            self.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * self.role.shoot_share))))
-            density = plan.shoot_rays_per_power * self.role.shoot_share
-            self.choices.add("plan", f"reflected light shot at {density:.3g} rays "
-                                f"per emitted power "
-                                f"(at least {plan.min_rays} rays a shot), then gathered again with "
-                                f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
-        return self.counted(len(emitters), shadow_counted + int(counts.sum()))
-
-    def with_reflections(self, power: np.ndarray) -> tuple[float, float]:
-        """(W, W): the power (3,) and all its reflections, P / (1 - rho) for the scene's mean
-        reflectance rho weighted by the power's channels, and P itself."""
-        power = np.abs(power)
-        total = float(power.sum())
-        rho = float(np.dot(self.patches.mean_rho, power) / max(total, 1e-300))
-        return total / (1.0 - min(rho, 0.95)), total
-
-    def shoot_prediction(self) -> float:
-        """Rays the shooting will take from here: the unshot power and its reflections, a ray per
-        ``power_per_ray`` (the shots' floors come on top: ``BUDGET_FIT`` leaves them room)."""
-        return self.with_reflections(self.ledger.unshot)[0] / max(self.power_per_ray, 1e-300)
-
-    def plan_rays(self, plan, receivers: int) -> float:
-        """Rays a final plan's shooting and gather would take from here (before the direct gather:
-        the reflections of the emitted power are what will be shot)."""
-        everything, emitted = self.with_reflections(self.ledger.emitted)
-        ppr = emitted / (plan.shoot_rays_per_power * self.role.shoot_share)
-        shoot = (everything - emitted) / max(ppr, 1e-300)
-        return shoot + plan.final_rays * receivers * (1.0 + BRIGHT_SHARE) * self.role.shoot_share
-
-    def budget_left(self) -> int | None:
-        """Rays --max-rays leaves this run (None: no budget; a shared run's replica: its 1/k of what
-        the shared direct gather left).  The plan is fitted to the ray budget only (``fit_budget``):
-        a run's seconds are not in proportion to its rays (a coarser shooting makes more shots of
-        fewer rays, each with its own cost: the office 3x3 fitted to 1 s traced 1.1M rays where the
-        plan traced 2.1M), so a time limit only cuts the final gather (``fit_round``)."""
-        cfg = self.config
-        if not cfg.max_rays:
-            return None
-        preset = self.role.preset_direct
-        spent = self.stats.rays + (preset.rays * self.role.shoot_share if preset is not None else 0)
-        return int(cfg.max_rays - spent)
-
-    @staticmethod
-    def budget_scale(left: float, need: float) -> float:
-        """The share of the planned density that fits ``need`` rays in BUDGET_FIT of ``left`` (1: it fits)."""
-        if need <= BUDGET_FIT * left:
-            return 1.0
-        return max(BUDGET_FIT * left, 0.0) / max(need, 1e-300)  # 0: nothing left (the run stops by the budget)
-
-    def calibrate(self) -> None:
-        """As the shooting starts: a first pass that shoots all its light (no final plan) spends
-        ``calibration`` of the run's density.  The density comes from the unknowns' count and a
-        constant (accuracy.rays_for), but the noise a ray leaves differs from scene to scene
-        (noise^2 x density / unknowns: Cornell 0.32, the classroom 0.15, the ice-cream store 0.073):
-        a sparse first pass measures it, and passes.solve_to_accuracy runs an independent second
-        pass at the density that brings the blend to the target when it is needed.  The blend
-        weighs the passes by inverse variance, so the first pass's rays are not lost."""
-        share = self.calibration
-        if not (0.0 < share < 1.0) or self.final_pending() or not by_accuracy(self.config):
-            return
-        self.power_per_ray /= share
-        self.choices.add("density", f"first pass at {share:g} of the density ({self.density():.3g} rays per emitted "
-                            f"power): its measured noise sets the density of a second pass if one is needed")
-
-    def density(self) -> float:
-        """Rays per emitted power this run's shooting spends."""
-        return float(self.ledger.emitted.sum()) / max(self.power_per_ray, 1e-300)
-
-    def fit_budget(self) -> None:
-        """Under --max-rays, in accuracy mode, as the shooting starts: when the shooting to its end and
-        the final gather (if planned) would not fit in what the budget leaves, coarsen both alike
-        (fewer rays a unit of power, fewer gather rays a receiver), so the light is all shot and
-        gathered within the budget.  Without it a small budget stopped the shooting with most of the
-        light unshot: the office 3x3 at 1e6 rays read 41% off (bench/RESULTS.md).  The gather's
-        rays are then kept for it (``gather_reserve``): the shooting stops short of them."""
-        self._fitted = True
-        cfg = self.config
-        left = self.budget_left()
-        if left is None or not by_accuracy(cfg):
-            return
-        receivers = int(self.patches.rho.any(axis=1).sum())
-        per_ray = receivers * (1.0 + BRIGHT_SHARE) * self.role.shoot_share  # this run's share of a gather ray
-        pending = self.final_pending()
-        shoot, gather = self.shoot_prediction(), (self.final_rays * per_ray if pending else 0.0)
-        f = self.budget_scale(left, shoot + gather)
-        if 0.0 < f < 1.0:
-            self.power_per_ray /= f
-            if pending:
-                self.final_rays = max(2 * int(self.final_rays * f / 2), 2)
-            share = f" (this replica's 1/{self.role.replicas} of them)" if self.role.replicas > 1 else ""
-            takes = f"{shoot:.3g} shooting" + (f", {gather:.3g} in the final gather" if pending else "")
-            gives = (f"shooting at {float(self.ledger.emitted.sum()) / self.power_per_ray:.3g} rays per emitted "
-                     f"power" + (f", {self.final_rays} gather rays per receiving patch" if pending else ""))
-            self.choices.add(
-                "budget", f"ray budget: --max-rays {cfg.max_rays} leaves about {left} rays{share}, and the plan "
-                                f"would take about {shoot + gather:.3g} ({takes}): its density is coarsened to "
-                                f"{f:.2g}x ({gives}) to fit")
-        if pending:
-            self.gather_reserve = int(math.ceil(self.final_rays * per_ray))
-
-    def final_pending(self) -> bool:
-        """True while a final gather is planned and has not run."""
-        return bool(self.final_rays) and self.direct_light is not None and not self.finalised
-
-    def final(self, rays: int, should_stop=None) -> int:
-        """A round of the final gather of the indirect light, ``rays`` rays per receiver (final.py);
-        return the rays traced (0: not done: the direct light was shot, or nothing to gather).
-        The first round reads the shot solution; later rounds add rays reading the same one.
-        ``should_stop()`` True ends the round between two batches (FinalGather._trace)."""
-        if self.direct_light is None or rays < 2 or not self.patches.rho.any():
-            return 0
-        self.finalised = True
-        t0 = time.perf_counter()
-        if self._final is None:
-            self._final = FinalGather(self.patches, self.tracer, self.noise.diff, *self.direct_light,
-                                      batch_rays=self.config.batch_rays)
-        b, d, traced, mismatch = self._final.round(rays + rays % 2, self.rng, should_stop)
-        self.stats.trace_seconds += time.perf_counter() - t0
-        self.patches.radiosity, self.noise.diff = b, d
-        self.noise.resync(self.patches)
-        absorbed = float(self.ledger.absorbed.sum())
-        self.choices.set(
-            "final_gather", f"final gather of the indirect light: {2 * self._final.per_half} rays per receiving "
-                            f"patch read the shot solution's reflected light (final.py): the ledger is the "
-                            f"shooting's and B keeps its reflected total; the indirect light landed differs from "
-                            f"the shot by {float(mismatch.sum()) / max(absorbed, 1e-300):.2%} of the absorbed power"
-                            + ("; stopped before its last round reached every receiver (those keep fewer "
-                               "rays, or the shot solution)" if self._final.stopped else ""))
-        return self.counted(0, traced)
-
-    def finish(self, should_stop=None) -> None:
-        """The final gather and its top-up rounds (``gather_rounds``, the driver a shared run uses
-        too): a first round of ``final_rays`` a receiver within the limits, then in accuracy mode more
-        while the settled estimate is above the target."""
-        receivers = int(self.patches.rho.any(axis=1).sum())
-
-        def first_cut(cut: int, by: str) -> None:
-            if by:
-                self.budget_cut = by
-                self.choices.add("budget", budget_cut_note(cut, self.final_rays, by, self.config, self.stats.rays))
-
-        rounds = gather_rounds(self.final_rays, self.config, receivers,
-                               spent=lambda: (self.stats.rays, self.elapsed()),
-                               trace=lambda rays: self.final(rays, should_stop),
-                               error=self.settled_target_error,
-                               halted=lambda: self._final is None or self._final.stopped, on_first=first_cut)
-        self.budget_cut = rounds.by or self.budget_cut
-
     # == the loop ==================================================================
     def elapsed(self) -> float:
         return clock() - self._t0
@@ -927,21 +498,21 @@ class Solver:
                 self._fresh_at = self.stats.batches
                 self.noise.resync(self.patches)
                 est = self.estimate()
-            shot = self.residual() <= UNSHOT_SHARE * cfg.accuracy or self.final_pending()
+            shot = self.residual() <= UNSHOT_SHARE * cfg.accuracy or self.final.pending()
             if (shot and self.target_error(est) <= cfg.accuracy and self.unshot_bias() <= self.bias_cap
                     and self.settled_target_error() <= cfg.accuracy):
                 return "accuracy"
-            if self.final_pending():
+            if self.final.pending():
                 if est.bias_refl <= FINAL_BIAS_SHARE * cfg.accuracy:
                     return "final_gather"  # the light is nearly all shot: gather it (``run``)
             elif shot and noise_floor(est, cfg.accuracy):
                 return "noise_floor"
         if cfg.time_limit and self.elapsed() >= cfg.time_limit:
             return "time_limit"
-        if self.gather_reserve and self.final_pending():
-            left = self.budget_left()
-            if left is not None and left <= self.gather_reserve:
-                return "final_gather"  # what is left of the budget is the gather's (``fit_budget``)
+        if self.budget.gather_reserve and self.final.pending():
+            left = self.budget.left()
+            if left is not None and left <= self.budget.gather_reserve:
+                return "final_gather"  # what is left of the budget is the gather's (``Budget.fit``)
         if cfg.max_rays and self.stats.rays >= cfg.max_rays:
             return "ray_budget"
         return ""
@@ -954,18 +525,18 @@ class Solver:
         self._t0 = clock() - self.stats.wall_seconds
         self.pool.invalidate()  # the table may have changed since the last run
         self.recount()
-        self.shoot_sources()
+        self.direct.shoot_sources()
         self.snapshot(force=True)
         # a preset gather (a shared run's) is booked even when stopping: it is done, and cheap to book
-        if self.config.direct and not self.gathered and (self.role.preset_direct is not None
+        if self.config.direct and not self.direct.tried and (self.role.preset_direct is not None
                                                          or not (should_stop is not None and should_stop())):
-            self.gather(should_stop)
+            self.direct.gather(should_stop)
             self.snapshot()
             if on_progress is not None:
                 on_progress(self)
-        if not self._fitted:
-            self.calibrate()
-            self.fit_budget()
+        if not self.budget.fitted:
+            self.budget.calibrate()
+            self.budget.fit()
         while True:
             reason = self.stop_reason()
             if not reason and should_stop is not None and should_stop():
@@ -978,13 +549,13 @@ class Solver:
             self.snapshot()
             if on_progress is not None:
                 on_progress(self)
-        if (reason == "final_gather" or (self.final_pending() and reason == "tolerance")) and not self.role.defer_final:
-            self.finish(should_stop)
-            if self._final is not None and self._final.stopped:
+        if (reason == "final_gather" or (self.final.pending() and reason == "tolerance")) and not self.role.defer_final:
+            self.final.finish(should_stop)
+            if self.final.gather is not None and self.final.gather.stopped:
                 reason = "stopped"
             elif by_accuracy(self.config):
                 met = self.settled_target_error() <= self.config.accuracy
-                reason = "accuracy" if met else self.budget_cut or "noise_floor"
+                reason = "accuracy" if met else self.final.cut or "noise_floor"
         self.recount()
         self.snapshot(force=True)
         self.stats.stopped_by = reason
@@ -1021,22 +592,9 @@ class Solver:
                                                                                                   self.patches)
 
 
-#: most rays a light source that is not a patch shoots to book where its gathered light lands in all
-#: (``Solver.gather_source``): they set the total's noise (under 0.2% of the power at this count when
-#: a tenth of it escapes), not where it lands
-SOURCE_LANDING_RAYS = 1 << 18
 #: the solver's clock (``time.perf_counter``; a test may run it on a clock of its own)
 clock = time.perf_counter
 
-#: a run under --max-rays plans its shooting and gather to this share of what the budget leaves
-#: (``Solver.fit_budget``): the rest is for the shots' ray floors and the prediction's error
-BUDGET_FIT = 0.85
-#: fewest shadow rays per receiver of a direct gather coarsened to fit --max-rays: below about 16
-#: the exact gather's own floor (its pilot, a ray a half per receiver-light pair) dominates (the
-#: office: 271k rays at 4, 276k at 8, 304k at 16, 611k at 32; Cornell 97k, 199k, 405k, 816k)
-MIN_BUDGET_SHADOW = 16
-#: the direct gather takes at most this share of a --max-rays budget; else the emitters are shot
-DIRECT_BUDGET_SHARE = 0.5
 #: batches between the resyncs ``stop_reason`` asks for near a stop (clustered tables), and how near:
 #: the estimate on the last factors within this many times the target (a cluster of 16 patches
 #: divides their noise's square by up to 16)

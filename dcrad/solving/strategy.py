@@ -1,8 +1,9 @@
 """Which way a run goes, and why: the one place the choice is made.
 
-Three strategies run a job: **single** (one subscene in one process: ``pipeline.solve_single``),
-**divided** (k subscenes trading light at barriers: divide.py, in process or on workers) and
-**shared** (k workers share one run of the whole scene, the work split, not space: share.py).
+Three strategies run a job (``dcrad.runs``, one object each): **single** (one subscene in one
+process), **divided** (k subscenes trading light at barriers: divide.py, in process or on
+workers) and **shared** (k workers share one run of the whole scene, the work split, not space:
+share.py).
 Two callers choose:
 
 * ``dcrad solve`` without ``--workers`` asks ``local``: this process (single), or two local worker

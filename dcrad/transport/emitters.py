@@ -8,7 +8,7 @@ sun) is an ``Emitter``: an object that says how much it emits, sends its light a
 the exact direct irradiance it puts on any point.  What asks them:
 
 * ``Solver`` books their power as emitted and spends it once, at the start of a run, before the
-  patches shoot (``Solver.shoot_sources``): with the direct gather on (the default) each patch
+  patches shoot (``DirectPhase.shoot_sources``): with the direct gather on (the default) each patch
   receives the mean of the exact direct irradiance over it (``patch_irradiance``: three points, a
   shadow ray each; a point source has no area, so this has no sampling noise), scaled to the power
   a batch of the source's own rays lands (the books: escaped, back faces), and reflects it like

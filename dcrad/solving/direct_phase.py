@@ -1,0 +1,334 @@
+"""The direct light at the start of a run, composed by the ``Solver`` (``solver.direct``).
+
+The emitting patches' light is gathered per receiver with shadow rays (``gather``: exact form
+factors or next-event estimation, direct.py) or shot, whichever is quieter, and light sources that
+are not patches (emitters.py) are gathered exactly or shot (``shoot_sources``).  The phase decides
+the run's plan: in accuracy mode with exact form factors it sets the final plan (shoot the reflected
+light coarsely, gather it again at the end: ``final_phase``).  It books through the solver's
+``commit`` and ``counted``: the ledger, the noise tallies and the stats stay the solver's.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from dcrad.solving.accuracy import final_plan
+from dcrad.transport.direct import (
+    GATHER_MARGIN,
+    MAX_ANALYTIC_RECEIVERS,
+    PILOT_SHARE,
+    AnalyticGather,
+    DirectTally,
+    GatherStopped,
+    analytic_lights,
+    gather_analytic,
+    gather_direct,
+    landing_rays,
+    merge,
+    noise_against_shooting,
+    rescale_to_landed,
+    shadow_rays_for,
+)
+from dcrad.transport.emitters import patch_irradiance
+from dcrad.transport.shoot import patch_rays, ray_offset
+
+if TYPE_CHECKING:
+    from dcrad.solving.solver import Solver
+
+__all__ = ["DirectPhase", "GATHER_STOPPED", "SOURCE_LANDING_RAYS", "MIN_BUDGET_SHADOW", "DIRECT_BUDGET_SHARE"]
+
+#: the report's line for a direct gather a stop request ended
+GATHER_STOPPED = ("direct gather stopped before it finished (a stop request): nothing of it is booked, the "
+                  "emitters' light is left unshot")
+#: most rays a light source that is not a patch shoots to book where its gathered light lands in all
+#: (``gather_source``): they set the total's noise (under 0.2% of the power at this count when
+#: a tenth of it escapes), not where it lands
+SOURCE_LANDING_RAYS = 1 << 18
+#: fewest shadow rays per receiver of a direct gather coarsened to fit --max-rays: below about 16
+#: the exact gather's own floor (its pilot, a ray a half per receiver-light pair) dominates (the
+#: office: 271k rays at 4, 276k at 8, 304k at 16, 611k at 32; Cornell 97k, 199k, 405k, 816k)
+MIN_BUDGET_SHADOW = 16
+#: the direct gather takes at most this share of a --max-rays budget; else the emitters are shot
+DIRECT_BUDGET_SHARE = 0.5
+
+
+class DirectPhase:
+    """The run's direct light: ``tried`` once ``gather`` ran; ``light``: (n,3) W of direct light each
+    patch received by the gather and half A's part (None: shot, or not gathered yet);
+    ``sources_left``: the light sources that are not patches still to spend (once, at the start)."""
+
+    def __init__(self, solver: "Solver"):
+        self.solver = solver
+        self.tried = False
+        self.light: tuple[np.ndarray, np.ndarray] | None = None
+        self.sources_left = list(solver.patches.sources)
+
+    def shoot_sources(self) -> int:
+        """Spend each light source that is not a patch (emitters.py) once, at the start of the run: its
+        direct light gathered exactly onto the patches (``gather_source``) while the direct gather is on
+        (the default), else shot with rays at the run's power per ray.  What lands is deposited,
+        reflected and shot on like any light, and the ledger books it as emitted (``__init__``) and
+        shot here.  Returns the rays traced."""
+        s = self.solver
+        rays = 0
+        while self.sources_left:
+            source = self.sources_left.pop(0)
+            if float(np.abs(source.power()).sum()) <= 0:
+                continue
+            rays += self.gather_source(source) if s.config.direct else self.shoot_source(source)
+        return rays
+
+    def shoot_source(self, source, n: int | None = None) -> int:
+        """Shoot ``source``'s whole power with ``n`` rays (None: at the run's power per ray), in
+        batches of at most ``batch_rays``; returns the rays traced."""
+        s = self.solver
+        if n is None:
+            n = max(int(math.ceil(float(np.abs(source.power()).sum()) / s.power_per_ray)), s.config.min_rays, 2)
+        rays = 0
+        for lo in range(0, n, s.config.batch_rays):
+            m = min(s.config.batch_rays, n - lo)
+            t0 = time.perf_counter()
+            batch = source.rays(m, s.rng)
+            batch.power = batch.power * (m / n)  # each batch an unbiased estimate of its share
+            tally = s.fire(batch, t0)
+            s.commit(batch, tally)
+            rays += s.counted(1 if lo == 0 else 0, m)
+        return rays
+
+    def gather_source(self, source) -> int:
+        """``source``'s direct light on every patch, exactly: the mean of I cos / d^2 over the patch
+        with shadow rays (emitters.patch_irradiance; a point source has no area, so nothing is
+        sampled but the visibility at three points a patch).  How much of its power lands in all, and
+        what escapes or meets back faces, comes from SOURCE_LANDING_RAYS of its own rays at most
+        (the books close to round-off, as for the emitting patches' gather, direct.rescale_to_landed);
+        the half-solutions differ only by those rays' landed total.  Returns the rays traced."""
+        s = self.solver
+        p = s.patches
+        power = np.asarray(source.power(), np.float64)
+        t0 = time.perf_counter()
+        # the receivers (what reflects); the rays' own hits book the rest (rescale_to_landed)
+        rows = np.flatnonzero((p.area > 0) & p.rho.any(axis=1))
+        glazing = None if p.glazing is None else p.glazing.take(rows)
+        received = patch_irradiance(source, p.corners(rows), p.normal[rows], s.tracer, ray_offset(p), glazing)
+        received *= p.area[rows, None]
+        keep = np.flatnonzero(received.any(axis=1))
+        shadow = len(rows) * 3
+        n = int(min(max(float(np.abs(power).sum()) / s.power_per_ray, 1024.0), SOURCE_LANDING_RAYS))
+        batch = source.rays(n, s.rng)
+        shot = s.fire(batch, t0)
+        landed = shot.received.sum(axis=0)
+        landed_a = shot.received_a.sum(axis=0) if shot.received_a is not None else 0.5 * landed
+        share_a = np.where(landed != 0, landed_a / np.where(landed != 0, landed, 1.0), 0.5)
+        got = received[keep]
+        magnitude = np.abs(got)
+        gathered = DirectTally(got, rows[keep], np.zeros(3), np.zeros(3), np.zeros(len(s.back_by_obj)),
+                               np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
+                               (magnitude * p.rho[rows[keep]]).sum(axis=0), np.zeros(3), got * share_a, shadow)
+        tally = rescale_to_landed(gathered, shot, p)
+        if tally is None:  # its rays landed light where no patch faces it: keep the rays' own result
+            s.commit(batch, shot)
+            s.choices.add("direct", f"{source.name}: its light shot, not gathered: its rays landed light where "
+                                       f"the exact gather found none")
+            return s.counted(1, shadow + n)
+        s.commit(None, tally, shot=power[None, :])
+        return s.counted(1, shadow + n)
+
+    def inputs(self, rows: np.ndarray | None = None):
+        """What the direct gather works from: (emitters, their unshot radiosity, their power (W),
+        shadow rays per receiver, the light polygons or None, the FinalPlan or None); None when
+        nothing emits.  Appends the report's line when the scene is too large for exact form factors.
+        ``rows``: the receivers whose light lists decide between exact and sampled gathers (None:
+        all; a shared run's share decides on its own, and its gather reuses the lists)."""
+        s = self.solver
+        p = s.patches
+        cfg = s.config
+        emitters = np.flatnonzero(p.emission.any(axis=1) & p.unshot.any(axis=1))
+        if len(emitters) == 0:
+            return None
+        amounts = p.unshot[emitters].copy()
+        power = amounts * p.area[emitters, None]
+        shadow = cfg.shadow_rays or shadow_rays_for(cfg.rays_per_power, len(p))
+        if s.role.preset_direct is not None:  # gathered by a shared run's workers: exact, with a final plan
+            plan = final_plan(cfg, len(p))
+            if plan is None:
+                raise ValueError("a preset direct gather needs accuracy mode with the direct light gathered")
+            return emitters, amounts, power, plan.shadow_rays, None, plan
+        n_receivers = len(np.flatnonzero(p.rho.any(axis=1)))
+        lights = analytic_lights(p, emitters, power, n_receivers, rows)
+        if lights is None and n_receivers > MAX_ANALYTIC_RECEIVERS:
+            s.choices.add(
+                "direct", f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
+                                f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
+        plan = final_plan(cfg, len(p)) if lights is not None else None
+        if plan is not None and p.sources:
+            # the final gather re-estimates all but the gathered direct light, and a source's shot
+            # direct light is not in it: it would be laid out as if it were reflected light
+            plan = None
+            s.choices.add("direct", "no final plan: the scene has light sources that are not patches "
+                                       "(emitters.py), whose direct light the final gather cannot tell apart")
+        if plan is not None and p.glazing is not None and p.glazing.mask.any():
+            plan = None  # final.read_hits reads the first surface a ray meets, a pane too
+            s.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
+                                       "see through yet (the shooting and the direct gather do)")
+        if plan is not None:
+            shadow = plan.shadow_rays
+            if cfg.max_rays:
+                # the whole plan (direct, shooting, gather) coarsened alike to fit the budget (the
+                # shooting and gather are fitted again once the direct light is in: ``Budget.fit``)
+                f = s.budget.scale(cfg.max_rays - s.stats.rays,
+                                      shadow * n_receivers + s.budget.plan_rays(plan, n_receivers))
+                shadow = max(int(shadow * f), MIN_BUDGET_SHADOW) if f < 1.0 else shadow  # f = 0: none fit
+        return emitters, amounts, power, shadow, lights, plan
+
+    def pilot(self, rows: np.ndarray, rng: np.random.Generator, should_stop=None) -> AnalyticGather | None:
+        """The exact direct gather of the receivers ``rows`` only, after its pilot pass
+        (``AnalyticGather``: ``finish(rate)`` gathers): one worker's share of a shared run
+        (share.py); None when the scene has no exact-form-factor lights or no final plan (a
+        shared run needs both)."""
+        s = self.solver
+        got = self.inputs(rows)
+        if got is None:
+            return None
+        emitters, _, power, shadow, lights, plan = got
+        if lights is None or plan is None:
+            return None
+        return AnalyticGather(s.patches, s.tracer, emitters, power, lights, shadow, rng,
+                              ray_offset(s.patches), s.config.batch_rays, rows, should_stop)
+
+    def gather(self, should_stop=None) -> int:
+        """Gather the emitters' direct light with shadow rays (direct.py); return the rays traced.
+        ``should_stop()`` True between two of the gather's batches abandons it: nothing is booked,
+        the emitters keep their light unshot (``run`` then stops).
+
+        The emitters' power is spent: a modest number of their ordinary rays books
+        how much lands, escapes or meets back faces (exactly, as shooting would),
+        and the gather distributes the landed power over the receivers' fronts.
+        Receivers keep rho of it; shooting goes on with the reflected light.  Exact
+        form factors (``gather_analytic``) when the emitters make few light polygons,
+        else next-event estimation (``gather_direct``).  Kept only when it is quieter
+        than shooting the emitters (``noise_against_shooting``), except in accuracy
+        mode with exact form factors: there the run follows an ``accuracy.FinalPlan``
+        (shoot the reflected light coarsely, gather it again at the end, final.py),
+        which needs the direct light gathered.
+
+        ``preset_direct`` (set by a shared run, share.py): the gather of every receiver, done
+        by the workers' shares; this run books it with its own emitter rays and does not
+        count its shadow rays (the shared run counts them once).
+        """
+        s = self.solver
+        p = s.patches
+        cfg = s.config
+        self.tried = True
+        got = self.inputs()
+        if got is None:
+            return 0
+        emitters, amounts, power, shadow, lights, plan = got
+        preset = s.role.preset_direct
+        # a pilot on a random share of the receivers decides whether gathering beats shooting
+        receivers = np.flatnonzero(p.rho.any(axis=1))
+        budget = cfg.max_rays - s.stats.rays if cfg.max_rays else 0
+        if preset is None and cfg.max_rays and shadow * len(receivers) > DIRECT_BUDGET_SHARE * budget:
+            # the gather's shadow rays would take most of the ray budget (the office at --max-rays
+            # 1e5: 611k rays, all of them the gather's; at 16 shadow rays, its least under a budget,
+            # still 304k): the emitters are shot, within it (``Budget.fit`` sets their density)
+            s.choices.add("direct", f"direct light shot, not gathered: {shadow} shadow rays for each of "
+                                f"{len(receivers)} receiving patches are more than {DIRECT_BUDGET_SHARE:.0%} of "
+                                f"the ray budget ({max(budget, 0)} of --max-rays {cfg.max_rays})")
+            return 0
+        size = min(len(receivers), max(64, int(PILOT_SHARE * len(receivers))))
+        pilot = np.sort(s.rng.choice(receivers, size, replace=False))
+        t0 = time.perf_counter()
+        off = ray_offset(p)
+
+        def gather_for(rows: np.ndarray):
+            if lights is not None:
+                return gather_analytic(p, s.tracer, emitters, power, lights, shadow, s.rng, off,
+                                       cfg.batch_rays, rows, should_stop)
+            return gather_direct(p, s.tracer, emitters, power, shadow, s.rng, off, cfg.batch_rays, rows,
+                                 should_stop)
+
+        how = (f"exact form factors to {len(lights)} light polygon(s), visibility from" if lights is not None
+               else "exact form factors (the shared run's direct shares), visibility from" if preset is not None
+               else "next-event estimation,")
+        # the exact form factors gather every receiver at once (their pilot finds penumbrae by
+        # neighbourhood: on a sparse share of the receivers it would find few), then compare
+        def abandoned(rays: int) -> int:  # a stop request ended the gather: nothing of it is booked
+            s.stats.trace_seconds += time.perf_counter() - t0
+            s.choices.add("direct", GATHER_STOPPED)
+            return s.counted(0, rays) if rays else 0
+
+        try:
+            gathered = preset if preset is not None else gather_for(pilot if lights is None else receivers)
+        except GatherStopped:
+            return abandoned(0)
+        shadow_counted = 0 if preset is not None else gathered.rays
+        s.stats.trace_seconds += time.perf_counter() - t0
+        quiet, loud = noise_against_shooting(p, gathered, power, s.power_per_ray)
+        ratio = math.sqrt(quiet / loud) if loud > 0 else math.inf
+        # a run with a final plan keeps its gather: the cheap path (shoot coarsely, gather again)
+        # needs the direct light gathered, and the noise of shooting it is the noise of a far
+        # denser run (the office: 1.2x the noise of shooting at 1.2e7 rays per power, which
+        # took 30.5M rays to 2%; gathered and finished: 4.3M rays for 1.6%)
+        # ... unless the pilot measured the gather so noisy that matching shooting's noise would take
+        # more shadow rays than shooting the emitted power at the run's density takes rays: a lamp
+        # in a fixture (louvres, a trough) is seen partly by most receivers, and its gather can be
+        # 13x noisier than shooting: the light is shot instead
+        equal = shadow * ratio * ratio * len(receivers)
+        if plan is not None and preset is None and equal > cfg.rays_per_power:
+            s.choices.add(
+                "direct", f"direct light shot, not gathered, and no final gather: the gather's {shadow} shadow "
+                                f"rays per receiving patch gave {ratio:.2f}x the noise of shooting; matching it would "
+                                f"take about {equal:.3g} shadow rays, more than the {cfg.rays_per_power:.3g} rays "
+                                f"shooting the emitted power once takes (its {gathered.rays} shadow rays are counted)")
+            s.final.rays = 0
+            return s.counted(0, gathered.rays)
+        if plan is None and not ratio < GATHER_MARGIN:
+            on = f"on a pilot of {len(pilot)} patches" if lights is None else "on every patch"
+            s.choices.add("direct", f"direct light shot, not gathered: {how} {shadow} shadow rays per patch gave "
+                                f"{ratio:.2f}x the noise shooting the emitters would, {on} (its "
+                                f"{gathered.rays} shadow rays are counted)")
+            return s.counted(0, gathered.rays)
+        if lights is None and preset is None:
+            t0 = time.perf_counter()
+            rest = np.setdiff1d(receivers, pilot, assume_unique=True)
+            try:
+                gathered = merge(gathered, gather_for(rest), p)
+            except GatherStopped:
+                return abandoned(gathered.rays)
+            s.stats.trace_seconds += time.perf_counter() - t0
+        # the emitters' own rays: how much of their power lands (the books), not where
+        total = power.sum(axis=1)
+        n_land = landing_rays(shadow, len(gathered.hit), len(emitters), cfg.batch_rays)
+        counts = np.maximum(np.ceil(n_land * total / total.sum()), 2).astype(np.int64)
+        t0 = time.perf_counter()
+        shot = s.fire(patch_rays(p, emitters, counts, power, s.rng), t0)
+        tally = rescale_to_landed(gathered, shot, p)
+        s.release(emitters, amounts)
+        s.noise.shot(emitters)
+        if tally is None:  # the gather missed light the rays found: keep the rays' own result
+            s.commit(None, shot, shot=power)
+            s.choices.add(
+                "direct", "direct light shot: the gather found no light where the emitters' rays landed some")
+            return s.counted(len(emitters), shadow_counted + int(counts.sum()))
+        s.commit(None, tally, shot=power)
+        full, half_a = np.zeros((len(p), 3)), np.zeros((len(p), 3))
+        full[tally.hit], half_a[tally.hit] = tally.received, tally.received_a
+        self.light = (full, half_a)
+        s.choices.add("direct", f"direct light gathered ({how} {shadow} shadow rays per receiving patch, "
+                            f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
+                            f"the emitters book how much of it lands, escapes or meets back faces")
+        if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
+            s.final.rays = s.role.planned_final_rays or plan.final_rays
+            s.power_per_ray = float(s.ledger.emitted.sum()) / (plan.shoot_rays_per_power * s.role.shoot_share)
+            # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
+            s.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * s.role.shoot_share))))
+            density = plan.shoot_rays_per_power * s.role.shoot_share
+            s.choices.add("plan", f"reflected light shot at {density:.3g} rays "
+                                f"per emitted power "
+                                f"(at least {plan.min_rays} rays a shot), then gathered again with "
+                                f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
+        return s.counted(len(emitters), shadow_counted + int(counts.sum()))
