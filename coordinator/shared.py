@@ -70,6 +70,9 @@ class RemoteShares:
         self._streaming = 0
 
     def _requests(self, phase: str, index: int, count: int, inputs: dict, with_scene: bool, with_shot: bool = True):
+        """The Share call's stream: the header, then each group of arrays in its own field of
+        ShareRequest (``inputs``: group -> arrays; the patch table as ``scene`` when ``with_scene``,
+        the shot solution only ``with_shot``)."""
         header = pb.ShareHeader(job_id=self.job_id, phase=share_phase(phase), index=index, count=count,
                                 solver=self.settings, names=list(self.patches.names), scene=with_scene)
         with self._lock:
@@ -77,12 +80,13 @@ class RemoteShares:
             self.quiet.clear()
         try:
             yield pb.ShareRequest(header=header)
-            arrays = {k: v for k, v in inputs.items() if with_shot or not k.startswith("shot_")}
+            groups = {g: arrays for g, arrays in inputs.items() if with_shot or g != "shot"}
             if with_scene:
-                arrays |= {f"scene_{k}": v for k, v in self.patches.table_arrays().items()}
-            for chunk in arrays_to_chunks(arrays):
-                self.bytes_sent += len(chunk.data)
-                yield pb.ShareRequest(array=chunk)
+                groups["scene"] = self.patches.table_arrays()
+            for group, arrays in groups.items():
+                for chunk in arrays_to_chunks(arrays):
+                    self.bytes_sent += len(chunk.data)
+                    yield pb.ShareRequest(**{group: chunk})
         finally:
             with self._lock:
                 self._streaming -= 1
@@ -116,7 +120,7 @@ class RemoteShares:
                             asm.add(chunk)
                         self.loaded.add(w.address)
                         self.used.add(w.address)
-                        if any(k.startswith("shot_") for k in inputs):
+                        if "shot" in inputs:
                             self.shot_on.add(w.address)
                         log.info("job %s: %s share %d back from %s %.2f s after it was sent", self.job_id, phase,
                                  index, w.address, time.perf_counter() - sent)
@@ -228,7 +232,7 @@ class RemoteShares:
         """Each share's pilot, then its gather at the shared rate (``direct.shared_rate``): the pilot
         stays on its worker in between; a worker that lost it pilots again (same stream, same light).
         A stop (``should_stop``) raises direct.GatherStopped, as ``LocalShares.direct``."""
-        rows = [{"rows": np.asarray(r, np.int64)} for r in shares]
+        rows = [{"array": {"rows": np.asarray(r, np.int64)}} for r in shares]
         with self._watching(should_stop):
             pilots = self._queued("pilot", rows)
             if any(not a for a in pilots):
@@ -236,12 +240,12 @@ class RemoteShares:
             rate = shared_rate([(float(a["pilot"][0]), float(a["pilot"][1])) for a in pilots])
             if self.stopping:
                 raise GatherStopped("stopped between the pilots and the gather")
-            out = self._queued("direct", [r | {"rate": np.array([rate])} for r in rows])
+            out = self._queued("direct", [{"array": r["array"] | {"rate": np.array([rate])}} for r in rows])
         return [tally_from_arrays(a, len(self.patches)) if a else None for a in out]
 
     def replicas(self, direct, k: int, should_stop=None, time_left: float = 0.0) -> list[Replica]:
         """The k replicas at once; ``time_left`` s of the job's time limit for each (0: none)."""
-        tally = {f"tally_{name}": v for name, v in tally_to_arrays(direct).items()}
+        tally = {"tally": tally_to_arrays(direct)}
         if time_left:
             self.settings.time_limit = time_left
         with self._watching(should_stop):
@@ -251,15 +255,15 @@ class RemoteShares:
     def gather(self, shot, shares: list[np.ndarray], rounds: list[int], should_stop=None):
         """[(sum_a, sum_b, rays traced)] of each share's final gather after ``rounds``; a stop
         (``should_stop``) ends each share's round at its next batch (the receivers reached keep it)."""
-        inputs = shot.to_arrays() | {"rounds": np.asarray(rounds, np.int64)}
+        inputs = {"shot": shot.to_arrays(), "array": {"rounds": np.asarray(rounds, np.int64)}}
         if len(rounds) == 1:  # a new shot: the placements were the direct shares'
             self.shot_on.clear()
             for i in range(len(shares)):
                 self.placed.pop(i, None)
         # after the first round a share's gather so far is held on its worker: it stays there
         with self._watching(should_stop):
-            out = self._queued("gather", [inputs | {"rows": np.asarray(r, np.int64)} for r in shares],
-                               sticky=len(rounds) > 1)
+            out = self._queued("gather", [inputs | {"array": inputs["array"] | {"rows": np.asarray(r, np.int64)}}
+                                          for r in shares], sticky=len(rounds) > 1)
         for a, rows in zip(out, shares):
             if any(name not in a or np.shape(a[name]) != (len(rows), 3) for name in ("sum_a", "sum_b")):
                 raise DcradError("a worker's gather share does not match its receivers")

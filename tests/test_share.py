@@ -152,8 +152,8 @@ def test_wire_forms_round_trip(table, shared_two):
     with pytest.raises(ValueError, match="outside"):
         tally_from_arrays(tally_to_arrays(tally) | {"hit": tally.hit + len(patches)}, len(patches))
     with pytest.raises(ValueError, match="shape"):
-        Shot.from_arrays({"shot_radiosity": np.zeros((3, 3)), "shot_diff": np.zeros((3, 3)),
-                          "shot_direct": np.zeros((3, 3)), "shot_direct_a": np.zeros((2, 3))}, 3)
+        Shot.from_arrays({"radiosity": np.zeros((3, 3)), "diff": np.zeros((3, 3)),
+                          "direct": np.zeros((3, 3)), "direct_a": np.zeros((2, 3))}, 3)
 
 
 def submit(address, folder, solver: dict, divide: dict | None = None):
@@ -333,11 +333,13 @@ def test_a_worker_refuses_bad_shares_by_name(table):
         with grpc.insecure_channel(f"127.0.0.1:{cluster.worker_ports[0]}") as ch:
             stub = pb_grpc.WorkerStub(ch)
 
-            def share(header, arrays=None):
+            def share(header, arrays=None, **groups):
+                """The Share call with the phase's own arrays and other groups (scene, shot, tally)."""
                 def requests():
                     yield pb.ShareRequest(header=header)
-                    for chunk in arrays_to_chunks(arrays or {}):
-                        yield pb.ShareRequest(array=chunk)
+                    for group, given in {"array": arrays or {}, **groups}.items():
+                        for chunk in arrays_to_chunks(given):
+                            yield pb.ShareRequest(**{group: chunk})
                 return list(stub.Share(requests(), timeout=60))
 
             settings = to_pb(SolverConfig(accuracy=0.05), pb.SolverSettings)
@@ -349,22 +351,21 @@ def test_a_worker_refuses_bad_shares_by_name(table):
                     share(pb.ShareHeader(job_id="j", phase=phase, index=0, count=1, solver=settings))
                 assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT, err.value.details()
                 assert f"phase {phase} (unset or unknown)" in err.value.details()
-            table_arrays = {f"scene_{k}": v for k, v in patches.table_arrays().items()}
             with pytest.raises(grpc.RpcError) as err:
                 share(pb.ShareHeader(job_id="j", phase=pb.SHARE_PHASE_PILOT, index=0, count=1, solver=settings,
                                      names=list(patches.names), scene=True),
-                      table_arrays | {"rows": np.array([len(patches) + 7])})
+                      {"rows": np.array([len(patches) + 7])}, scene=patches.table_arrays())
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "outside" in err.value.details()
             with pytest.raises(grpc.RpcError) as err:  # the table is held now; a gather without its shot
                 share(pb.ShareHeader(job_id="j", phase=pb.SHARE_PHASE_GATHER, index=0, count=1, solver=settings),
                       {"rows": np.array([0, 1]), "rounds": np.array([4])})
             assert err.value.code() == grpc.StatusCode.NOT_FOUND and "shot solution" in err.value.details()
             n = len(patches)
-            shot = {"shot_radiosity": np.zeros((n, 3)), "shot_diff": np.zeros((n, 3)),
-                    "shot_direct": np.zeros((n, 2)), "shot_direct_a": np.zeros((n, 3))}
+            shot = {"radiosity": np.zeros((n, 3)), "diff": np.zeros((n, 3)),
+                    "direct": np.zeros((n, 2)), "direct_a": np.zeros((n, 3))}
             with pytest.raises(grpc.RpcError) as err:
                 share(pb.ShareHeader(job_id="j", phase=pb.SHARE_PHASE_GATHER, index=0, count=1, solver=settings),
-                      shot | {"rows": np.array([0, 1]), "rounds": np.array([4])})
+                      {"rows": np.array([0, 1]), "rounds": np.array([4])}, shot=shot)
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "direct has shape" in err.value.details()
 
 

@@ -54,14 +54,22 @@ def status_of(key: pb.SubsceneKey, sub: Subscene, compute_s: float = 0.0) -> pb.
 
 async def read_stream(request_iterator, head: str):
     """A client stream of one ``head`` message then ArrayChunks: (head or None, arrays assembler)."""
+    first, groups = await read_groups(request_iterator, head)
+    return first, groups.setdefault("array", ArrayAssembler())
+
+
+async def read_groups(request_iterator, head: str) -> tuple:
+    """A client stream of one ``head`` message then ArrayChunks in the fields of its ``part`` oneof:
+    (head or None, {field: arrays assembler})."""
     first = None
-    asm = ArrayAssembler()
+    groups: dict[str, ArrayAssembler] = {}
     async for req in request_iterator:
-        if req.HasField(head):
+        part = req.WhichOneof("part")
+        if part == head:
             first = getattr(req, head)
-        else:
-            asm.add(req.array)
-    return first, asm
+        elif part is not None:
+            groups.setdefault(part, ArrayAssembler()).add(getattr(req, part))
+    return first, groups
 
 
 class WorkerServicer(pb_grpc.WorkerServicer):
@@ -153,7 +161,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
 
     async def Share(self, request_iterator, context):
         t_in = time.perf_counter()
-        header, asm = await read_stream(request_iterator, "header")
+        header, groups = await read_groups(request_iterator, "header")
         if header is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "Share needs a header first")
         job = header.job_id
@@ -163,13 +171,14 @@ class WorkerServicer(pb_grpc.WorkerServicer):
             stop.set()
             return
         try:
-            arrays = asm.result()
+            given = {g: asm.result() for g, asm in groups.items()}
+            arrays = given.get("array", {})
             config = from_pb(SolverConfig, header.solver)
             if phase not in ("pilot", "direct", "replica", "gather") or not 0 <= header.index < max(header.count, 1):
                 what = phase or f"{header.phase} (unset or unknown)"
                 raise ValueError(f"bad share: phase {what}, index {header.index} of {header.count}")
             if header.scene:
-                table = {k[len("scene_"):]: v for k, v in arrays.items() if k.startswith("scene_")}
+                table = given.get("scene", {})
                 t_read = time.perf_counter()
                 patches = Patches.from_table(table, list(header.names))
                 self.scenes[job] = (patches, await asyncio.to_thread(Tracer.mesh, patches))
@@ -212,8 +221,8 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                                                   held, stopping)
                     out = {} if got is None else tally_to_arrays(got)
                 elif phase == "gather":
-                    if "shot_radiosity" in arrays:  # sent once a job: every gather share reads it
-                        self.shots[job] = Shot.from_arrays(arrays, len(patches))
+                    if "shot" in given:  # sent once a job: every gather share reads it
+                        self.shots[job] = Shot.from_arrays(given["shot"], len(patches))
                     shot = self.shots.get(job)
                     if shot is None:
                         await context.abort(grpc.StatusCode.NOT_FOUND, f"no shot solution of job {job} on this "
@@ -224,8 +233,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                     self.gathers[key] = fg
                     out = {"sum_a": fg.sum_a, "sum_b": fg.sum_b, "traced": np.array([traced], np.int64)}
                 else:
-                    tally = tally_from_arrays({k[len("tally_"):]: v for k, v in arrays.items()
-                                               if k.startswith("tally_")}, len(patches))
+                    tally = tally_from_arrays(given.get("tally", {}), len(patches))
                     rep = await asyncio.to_thread(run_replica, patches, config, tracer, tally, header.index,
                                                   header.count, stopping)
                     out = rep.to_arrays()

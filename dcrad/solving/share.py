@@ -252,15 +252,14 @@ class Shot:
 
     def to_arrays(self) -> dict:
         """What a gather share reads (the books stay with the shared run)."""
-        return {"shot_radiosity": self.radiosity, "shot_diff": self.diff, "shot_direct": self.direct,
-                "shot_direct_a": self.direct_a}
+        return {"radiosity": self.radiosity, "diff": self.diff, "direct": self.direct, "direct_a": self.direct_a}
 
     @staticmethod
     def from_arrays(arrays: dict, n: int) -> "Shot":
         """``to_arrays``' inverse (a gather share's input; no books); ValueError for a wrong shape."""
         got = {}
         for name in ("radiosity", "diff", "direct", "direct_a"):
-            a = np.asarray(arrays[f"shot_{name}"], np.float64)
+            a = np.asarray(arrays[name], np.float64)
             if a.shape != (n, 3):
                 raise ValueError(f"shot array {name} has shape {a.shape}, not ({n}, 3)")
             got[name] = a

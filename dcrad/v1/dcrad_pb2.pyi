@@ -417,9 +417,15 @@ class ShareHeader(_message.Message):
     def __init__(self, job_id: _Optional[str] = ..., phase: _Optional[_Union[SharePhase, str]] = ..., index: _Optional[int] = ..., count: _Optional[int] = ..., solver: _Optional[_Union[SolverSettings, _Mapping]] = ..., names: _Optional[_Iterable[str]] = ..., scene: _Optional[bool] = ...) -> None: ...
 
 class ShareRequest(_message.Message):
-    __slots__ = ("header", "array")
+    __slots__ = ("header", "array", "scene", "tally", "shot")
     HEADER_FIELD_NUMBER: _ClassVar[int]
     ARRAY_FIELD_NUMBER: _ClassVar[int]
+    SCENE_FIELD_NUMBER: _ClassVar[int]
+    TALLY_FIELD_NUMBER: _ClassVar[int]
+    SHOT_FIELD_NUMBER: _ClassVar[int]
     header: ShareHeader
     array: ArrayChunk
-    def __init__(self, header: _Optional[_Union[ShareHeader, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...
+    scene: ArrayChunk
+    tally: ArrayChunk
+    shot: ArrayChunk
+    def __init__(self, header: _Optional[_Union[ShareHeader, _Mapping]] = ..., array: _Optional[_Union[ArrayChunk, _Mapping]] = ..., scene: _Optional[_Union[ArrayChunk, _Mapping]] = ..., tally: _Optional[_Union[ArrayChunk, _Mapping]] = ..., shot: _Optional[_Union[ArrayChunk, _Mapping]] = ...) -> None: ...
