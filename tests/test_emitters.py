@@ -130,6 +130,33 @@ def test_the_mean_indirect_light_in_a_closed_cube_is_the_integrating_sphere_s(tm
         assert area == pytest.approx(96.0)
 
 
+def test_a_room_lit_only_by_a_source_follows_the_final_plan(tmp_path):
+    """A grey room lit by a downlight alone: its direct light is gathered exactly (a point has no
+    area), so the run follows the final plan as a room lit by emitting patches does (the reflected
+    light shot coarsely, then gathered again), says so, and closes its books; its error against a
+    converged run of the same mesh (tol mode, another seed) is within its target and its estimate
+    reads that error within 1.5x."""
+    from dcrad.solving.energy import read_error
+
+    i0 = 2000.0 / 179.0
+
+    def downlight(dirs):
+        return np.repeat(np.maximum(-dirs[:, 1:2], 0.0) * i0, 3, axis=1)
+
+    path = box(tmp_path, 0.6)
+    src = PointSource([2.0, HEIGHT - 0.1, 2.0], downlight)
+    run = dcrad.solve(path, accuracy=0.03, patch_size=0.25, sources=[src], seed=4)
+    codes = [c["code"] for c in run.report["choices"]]
+    assert "plan" in codes and "final_gather" in codes, run.report["choices"]
+    assert run.report["stats"]["stopped_by"] == "accuracy" and run.report["ledger"]["closure"] < 1e-9
+    ref = dcrad.solve(path, tol=1e-4, rays_per_power=2e7, patch_size=0.25, sources=[src], seed=9)
+    assert "plan" not in [c["code"] for c in ref.report["choices"]]  # tol mode: shot to the end
+    est = run.estimate
+    err = read_error(run.patches, run.patches.radiosity, ref.patches.radiosity)
+    assert err < 2 * 0.03 and est.elements_refl is not None
+    assert err / 1.5 < est.elements_refl < 1.5 * err, (err, est)
+
+
 class HalfSphere:
     """A new kind of emitter, here only: isotropic below the horizontal, dark above.  It implements
     the protocol and nothing else is touched (the solver shoots it, the photometry reads it)."""

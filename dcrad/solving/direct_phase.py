@@ -66,6 +66,11 @@ class DirectPhase:
         self.tried = False
         self.light: tuple[np.ndarray, np.ndarray] | None = None
         self.sources_left = list(solver.patches.sources)
+        #: (n,3) W the sources' exact gathers put on each patch, and half A's part (None: none gathered):
+        #: direct light the final gather must not re-estimate, like the emitting patches'
+        self.source_light: tuple[np.ndarray, np.ndarray] | None = None
+        #: a source's light was shot, not gathered: the final gather could not tell it from reflected light
+        self.sources_shot = False
 
     def shoot_sources(self) -> int:
         """Spend each light source that is not a patch (emitters.py) once, at the start of the run: its
@@ -85,6 +90,7 @@ class DirectPhase:
     def shoot_source(self, source, n: int | None = None) -> int:
         """Shoot ``source``'s whole power with ``n`` rays (None: at the run's power per ray), in
         batches of at most ``batch_rays``; returns the rays traced."""
+        self.sources_shot = True
         s = self.solver
         if n is None:
             n = max(int(math.ceil(float(np.abs(source.power()).sum()) / s.power_per_ray)), s.config.min_rays, 2)
@@ -131,10 +137,15 @@ class DirectPhase:
         tally = rescale_to_landed(gathered, shot, p)
         if tally is None:  # its rays landed light where no patch faces it: keep the rays' own result
             s.commit(batch, shot)
+            self.sources_shot = True
             s.choices.add("direct", f"{source.name}: its light shot, not gathered: its rays landed light where "
                                        f"the exact gather found none")
             return s.counted(1, shadow + n)
         s.commit(None, tally, shot=power[None, :])
+        if self.source_light is None:
+            self.source_light = (np.zeros((len(p), 3)), np.zeros((len(p), 3)))
+        np.add.at(self.source_light[0], tally.hit, tally.received)
+        np.add.at(self.source_light[1], tally.hit, tally.received_a)
         return s.counted(1, shadow + n)
 
     def inputs(self, rows: np.ndarray | None = None):
@@ -164,12 +175,12 @@ class DirectPhase:
                 "direct", f"no exact direct gather (nor final plan): {n_receivers} receiving patches, above "
                                 f"{MAX_ANALYTIC_RECEIVERS} (its memory and CPU stop paying there: direct.py)")
         plan = final_plan(cfg, len(p)) if lights is not None else None
-        if plan is not None and p.sources:
+        if plan is not None and self.sources_shot:
             # the final gather re-estimates all but the gathered direct light, and a source's shot
             # direct light is not in it: it would be laid out as if it were reflected light
             plan = None
-            s.choices.add("direct", "no final plan: the scene has light sources that are not patches "
-                                       "(emitters.py), whose direct light the final gather cannot tell apart")
+            s.choices.add("direct", "no final plan: a light source that is not a patch (emitters.py) was shot, "
+                                       "not gathered, and the final gather cannot tell its direct light apart")
         if plan is not None and p.glazing is not None and p.glazing.mask.any():
             plan = None  # final.read_hits reads the first surface a ray meets, a pane too
             s.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
@@ -225,6 +236,7 @@ class DirectPhase:
         self.tried = True
         got = self.inputs()
         if got is None:
+            self.sources_only()
             return 0
         emitters, amounts, power, shadow, lights, plan = got
         preset = s.role.preset_direct
@@ -317,18 +329,50 @@ class DirectPhase:
         s.commit(None, tally, shot=power)
         full, half_a = np.zeros((len(p), 3)), np.zeros((len(p), 3))
         full[tally.hit], half_a[tally.hit] = tally.received, tally.received_a
+        if self.source_light is not None:  # the sources' exact direct light is direct light too
+            full += self.source_light[0]
+            half_a += self.source_light[1]
         self.light = (full, half_a)
         s.choices.add("direct", f"direct light gathered ({how} {shadow} shadow rays per receiving patch, "
                             f"{ratio:.2f}x the noise of shooting it); {int(counts.sum())} rays from "
                             f"the emitters book how much of it lands, escapes or meets back faces")
-        if plan is not None:  # shoot the reflected light coarsely, gather it again at the end (final.py)
-            s.final.rays = s.role.planned_final_rays or plan.final_rays
-            s.power_per_ray = float(s.ledger.emitted.sum()) / (plan.shoot_rays_per_power * s.role.shoot_share)
-            # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
-            s.config = cfg.replace(min_rays=max(2, int(round(plan.min_rays * s.role.shoot_share))))
-            density = plan.shoot_rays_per_power * s.role.shoot_share
-            s.choices.add("plan", f"reflected light shot at {density:.3g} rays "
-                                f"per emitted power "
-                                f"(at least {plan.min_rays} rays a shot), then gathered again with "
-                                f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
+        if plan is not None:
+            self.adopt(plan)
         return s.counted(len(emitters), shadow_counted + int(counts.sum()))
+
+    def adopt(self, plan) -> None:
+        """Follow ``plan`` (accuracy.FinalPlan): shoot the reflected light coarsely, gather it again at
+        the end (final.py)."""
+        s = self.solver
+        s.final.rays = s.role.planned_final_rays or plan.final_rays
+        s.power_per_ray = float(s.ledger.emitted.sum()) / (plan.shoot_rays_per_power * s.role.shoot_share)
+        # a replica of a shared run shoots 1/k of the rays of every shot, the floor's too
+        s.config = s.config.replace(min_rays=max(2, int(round(plan.min_rays * s.role.shoot_share))))
+        density = plan.shoot_rays_per_power * s.role.shoot_share
+        s.choices.add("plan", f"reflected light shot at {density:.3g} rays "
+                            f"per emitted power "
+                            f"(at least {plan.min_rays} rays a shot), then gathered again with "
+                            f"{plan.final_rays} rays per receiving patch (accuracy.FinalPlan)")
+
+    def sources_only(self) -> None:
+        """No patch emits: when every light source's direct light was gathered exactly, it is the
+        run's direct light, and in accuracy mode the run follows the final plan as one lit by
+        emitting patches does (the sources' gather has no sampling noise: a point has no area)."""
+        s = self.solver
+        p = s.patches
+        if self.source_light is None or self.sources_shot:
+            return
+        self.light = (self.source_light[0].copy(), self.source_light[1].copy())
+        receivers = int(p.rho.any(axis=1).sum())
+        plan = final_plan(s.config, len(p))
+        if plan is None:
+            return
+        if receivers > MAX_ANALYTIC_RECEIVERS:
+            s.choices.add("direct", f"no final plan: {receivers} receiving patches, above the "
+                                    f"{MAX_ANALYTIC_RECEIVERS} a final gather takes (direct.py)")
+            return
+        if p.glazing is not None and p.glazing.mask.any():
+            s.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
+                                    "see through yet (the shooting and the direct gather do)")
+            return
+        self.adopt(plan)

@@ -16,9 +16,10 @@ the exact direct irradiance it puts on any point.  What asks them:
 * ``photometry.direct_irradiance`` adds their exact direct light to the lux of black surfaces
   and of the work plane (a point source: one shadow ray a point is exact).
 
-A new kind of emitter implements the three methods below and touches nothing else.  What they
-are not yet: run divided or shared (``check_single``), or gathered again by a final gather (a run
-with sources follows no final plan).
+Their exact direct light is the run's direct light, as the emitting patches' gathered light is: in
+accuracy mode a run follows the final plan with them (``DirectPhase.sources_only``; not when a
+source had to be shot).  A new kind of emitter implements the three methods below and touches
+nothing else.  What they are not yet: run divided or shared (``check_single``).
 """
 
 from __future__ import annotations
