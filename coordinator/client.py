@@ -128,27 +128,73 @@ def scene_files(path) -> dict[str, bytes]:
         raise SceneFormatError(f"{path}: a scene file cannot be read: {exc.strerror or exc}") from None
 
 
+def luminaire_paths(schedule, folder: Path) -> tuple[str, dict[str, Path]]:
+    """(the schedule's path in the upload, {relative path: file}): a luminaire schedule and the
+    photometric files it names, uploaded under ``luminaires/``.  The files keep their own names
+    (numbered when two differ) and the schedule is rewritten into ``folder`` to name them there;
+    the coordinator checks the rest as ``dcrad solve`` does (luminaires.load_schedule).
+    ConfigError naming the schedule for one that cannot be read or a file it names that is missing."""
+    schedule = Path(schedule)
+    try:
+        data = json.loads(schedule.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{schedule}: no such luminaire schedule") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ConfigError(f"{schedule}: cannot be read as a JSON luminaire schedule ({exc})") from None
+    entries = [data] if isinstance(data, dict) else data if isinstance(data, list) else []
+    rel = f"luminaires/{safe_relpath(schedule.name)}"
+    files: dict[str, Path] = {}
+    names: dict[Path, str] = {}
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, dict) or not isinstance(entry.get("file"), str) or not entry["file"]:
+            continue  # the coordinator names what is wrong with it
+        src = (schedule.parent / entry["file"]).resolve()
+        if not src.is_file():
+            raise ConfigError(f"{schedule}: luminaire {i + 1}: no such photometric file '{entry['file']}'")
+        if src not in names:
+            taken = f"luminaires/{src.name}" in files or f"luminaires/{src.name}" == rel
+            name = safe_relpath(f"{len(names)}_{src.name}" if taken else src.name)
+            names[src] = name
+            files[f"luminaires/{name}"] = src
+        entry["file"] = names[src]
+    rewritten = Path(folder) / "schedule.json"
+    rewritten.write_text(json.dumps(data))
+    return rel, {rel: rewritten, **files}
+
+
 # -- calls ---------------------------------------------------------------------------------
-def _requests(scene: str, files: dict, solver: dict, divide: dict, preview: tuple[int, int] = (0, 0)):
+def _requests(scene: str, files: dict, solver: dict, divide: dict, preview: tuple[int, int] = (0, 0),
+              luminaires: str = ""):
     yield pb.SubmitRequest(spec=pb.JobSpec(scene=scene, solver=pb.SolverSettings(**solver),
                                            divide=pb.DivideSettings(**divide),
-                                           preview_width=preview[0], preview_height=preview[1]))
+                                           preview_width=preview[0], preview_height=preview[1],
+                                           luminaires=luminaires))
     for rel, file in files.items():  # streamed from disk, one chunk at a time
         for chunk in path_chunks(file, rel):
             yield pb.SubmitRequest(file=chunk)
 
 
 def submit(address: str, path, solver: dict | None = None, divide: dict | None = None,
-           preview: tuple[int, int] = (0, 0)) -> pb.JobSummary:
+           preview: tuple[int, int] = (0, 0), luminaires=None) -> pb.JobSummary:
     """Upload the scene at ``path`` and its files with the settings; the new job's summary.
 
     preview: (width, height) of the preview images in pixels; 0 means the default.
+    luminaires: a luminaire schedule (JSON) lighting the scene too, uploaded with its files.
     """
     files = scene_paths(path)
     solver = {k: v for k, v in (solver or {}).items() if v is not None}
     divide = {k: v for k, v in (divide or {}).items() if v is not None}
-    with channel(address) as ch:
-        return pb_grpc.CoordinatorStub(ch).Submit(_requests(next(iter(files)), files, solver, divide, preview))
+    with tempfile.TemporaryDirectory(prefix="dcrad-submit-") as tmp:
+        schedule = ""
+        if luminaires is not None:
+            schedule, extra = luminaire_paths(luminaires, Path(tmp))
+            clash = sorted(set(extra) & set(files))
+            if clash:
+                raise ConfigError(f"{path}: the scene's own files include {clash[0]}, where the luminaires go")
+            files |= extra
+        with channel(address) as ch:
+            return pb_grpc.CoordinatorStub(ch).Submit(_requests(next(iter(files)), files, solver, divide, preview,
+                                                                schedule))
 
 
 def watch(address: str, job_id: str, on_progress=None) -> pb.Progress | None:
@@ -318,17 +364,16 @@ def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
 
 @_handled
 def cmd_submit(args) -> int:
-    if args.luminaires is not None:
-        # the photometric files would have to travel with the job, and a shared or divided run
-        # cannot carry light sources that are not surfaces yet (emitters.check_single)
-        raise ConfigError(f"--luminaires {args.luminaires}: the service does not take luminaire schedules yet; "
-                          f"solve in this process: dcrad solve SCENE --luminaires {args.luminaires} --workers 0")
+    if args.luminaires is not None and args.subscenes > 0:
+        # a divided run cannot carry light sources that are not surfaces yet (emitters.check_single)
+        raise ConfigError(f"--luminaires {args.luminaires}: a job with luminaires runs shared on the workers, not "
+                          f"divided into --subscenes {args.subscenes}")
     address = resolve_address(args.coordinator)
     solver = from_args(SolverConfig, args).as_dict() | scene_values(args)
     # subscenes 0 travels as 0: the coordinator makes one per registered worker
     divide = divide_from_args(args, max(args.subscenes, 1)).as_dict() | {"subscenes": args.subscenes}
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
-        job = submit(address, resolve_scene(args.scene, Path(tmp)), solver, divide)
+        job = submit(address, resolve_scene(args.scene, Path(tmp)), solver, divide, luminaires=args.luminaires)
     print(job.job_id, flush=True)
     if not args.wait:
         return 0

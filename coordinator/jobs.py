@@ -40,8 +40,11 @@ from dcrad.pipeline import finish_run, output_views, prepare, scene_settings
 from dcrad.runs import Divided, RunHooks, Shared
 from dcrad.settings import from_pb
 from dcrad.solving.accuracy import resolve
-from dcrad.solving.strategy import Strategy, on_workers
+from dcrad.solving.strategy import Strategy, on_workers, shares_sources
+from dcrad.transport.direct import MAX_ANALYTIC_RECEIVERS
+from dcrad.transport.luminaires import load_schedule
 from dcrad.transport.optics import opaque_for
+from dcrad.transport.source_wire import sources_table
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import estimate_to_pb, ledger_to_pb
 
@@ -244,15 +247,12 @@ class JobManager:
             render.check_image_size(spec.preview_width or 640, spec.preview_height or 480)
             t0 = time.perf_counter()
             phases: dict[str, float] = {}
-            scene, patches, size = prepare(scene_dir / spec.scene, spec.solver.patch_size or None,
-                                           spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
-                                           timings=phases, workplane=spec.solver.workplane)
+            if spec.luminaires and spec.luminaires not in files:
+                raise DcradError(f"the upload has no file '{spec.luminaires}' (the luminaire schedule named in "
+                                 f"the job)")
+            scene, patches, size = self._prepare(spec, scene_dir, phases)
             if patches.sources:
-                # shared and divided runs carry no light sources that are not surfaces yet
-                # (emitters.check_single): refused at the upload, not when the job starts
-                names = ", ".join(s.name for s in patches.sources[:4]) + (", ..." if len(patches.sources) > 4 else "")
-                raise ConfigError(f"{spec.scene}: its glTF lights ({names}) are solved in one process for now, "
-                                  f"not by the service: dcrad solve {spec.scene} --workers 0")
+                self._check_sources(spec, patches)
             glass = opaque_for(patches, "the service's")  # shared and divided runs carry no glass yet
             if glass is not None:
                 scene.warnings.append(glass)
@@ -267,6 +267,33 @@ class JobManager:
         self.jobs[job.id] = job
         self._save(job)
         return job
+
+    @staticmethod
+    def _prepare(spec: pb.JobSpec, scene_dir: Path, phases: dict):
+        """(scene, patches, element size) of the job's upload: loaded, validated and meshed, lit by
+        its luminaire schedule too when it has one (luminaires.load_schedule, as `dcrad solve`)."""
+        scale = spec.solver.scale or 1.0
+        sources = None if not spec.luminaires else \
+            (lambda sc: load_schedule(scene_dir / spec.luminaires, sc, scale))
+        return prepare(scene_dir / spec.scene, spec.solver.patch_size or None, scale, spec.solver.up or None,
+                       spec.solver.two_sided, timings=phases, workplane=spec.solver.workplane, sources=sources)
+
+    def _check_sources(self, spec: pb.JobSpec, patches) -> None:
+        """Light sources that are not surfaces (luminaires, glTF point and spot lights) run shared on
+        the workers, not divided (emitters.check_single): a job that would divide is refused at the
+        upload, naming why, not when it starts; so is a source that cannot travel (source_wire)."""
+        sources_table(patches.sources)
+        config = solver_config(spec.solver)
+        receivers = int(np.count_nonzero(patches.rho.any(axis=1)))
+        names = ", ".join(s.name for s in patches.sources[:4]) + (", ..." if len(patches.sources) > 4 else "")
+        why = ("--subscenes asks for a divided run" if spec.divide.subscenes
+               else "" if shares_sources(config, receivers)
+               else f"a shared run needs accuracy mode with the direct light gathered and at most "
+                    f"{MAX_ANALYTIC_RECEIVERS} receiving patches (it has {receivers})")
+        if why:
+            raise ConfigError(f"{spec.scene}: its light sources that are not surfaces ({names}) run shared on the "
+                              f"workers, and this job would be divided: {why}; or solve it in one process: "
+                              f"dcrad solve SCENE --workers 0")
 
     def start(self, job: Job) -> None:
         threading.Thread(target=self._run, args=(job,), name=f"job-{job.id}", daemon=True).start()
@@ -313,9 +340,7 @@ class JobManager:
         else:
             t0 = time.perf_counter()
             phases: dict[str, float] = {}
-            scene, patches, size = prepare(job.root / "scene" / spec.scene, spec.solver.patch_size or None,
-                                           spec.solver.scale or 1.0, spec.solver.up or None, spec.solver.two_sided,
-                                           timings=phases)
+            scene, patches, size = self._prepare(spec, job.root / "scene", phases)
             glass = opaque_for(patches, "the service's")  # as at the upload (``submit``)
             if glass is not None:
                 scene.warnings.append(glass)
@@ -329,7 +354,7 @@ class JobManager:
             raise NoWorkers(f"no worker registered within {wait:.0f} s")
         receivers = int(np.count_nonzero(patches.rho.any(axis=1)))
         strategy = on_workers(config, receivers, len(patches), live, spec.divide.subscenes,
-                              resumed=job.resume is not None)
+                              resumed=job.resume is not None, sources=bool(patches.sources))
         if strategy.kind == "shared":
             if self._solve_shared(job, scene, patches, size, config, timings, mem, strategy.why):
                 return

@@ -31,6 +31,7 @@ from dcrad.errors import DcradError
 from dcrad.settings import to_pb
 from dcrad.solving.share import Replica, tally_from_arrays, tally_to_arrays
 from dcrad.transport.direct import GatherStopped, shared_rate
+from dcrad.transport.source_wire import sources_table
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, share_phase
 
@@ -81,8 +82,8 @@ class RemoteShares:
         try:
             yield pb.ShareRequest(header=header)
             groups = {g: arrays for g, arrays in inputs.items() if with_shot or g != "shot"}
-            if with_scene:
-                groups["scene"] = self.patches.table_arrays()
+            if with_scene:  # the patch table and its light sources that are not patches
+                groups["scene"] = self.patches.table_arrays() | sources_table(self.patches.sources)
             for group, arrays in groups.items():
                 for chunk in arrays_to_chunks(arrays):
                     self.bytes_sent += len(chunk.data)

@@ -127,17 +127,13 @@ def cmd_solve(args) -> int:
     check_image_size(args.width, args.height)
     choice, loaded = None, None
     if args.luminaires is not None:
-        # light sources that are not surfaces run in one process, one subscene, for now
+        # light sources that are not surfaces run in one process or shared on workers, not divided
         # (emitters.check_single): refused here by the flags, before any work or worker starts
-        away = [flag for flag, given in ((f"--workers {args.workers}", (args.workers or 0) > 0),
-                                         (f"--subscenes {args.subscenes}", args.subscenes > 1),
+        away = [flag for flag, given in ((f"--subscenes {args.subscenes}", args.subscenes > 1),
                                          ("--planes", bool(args.planes))) if given]
         if away:
-            raise ConfigError(f"--luminaires {args.luminaires}: luminaires are solved in this process, one subscene, "
-                              f"for now (--workers 0), not with {', '.join(away)}")
-        if args.workers is None:
-            args.workers = 0
-            choice = Choice("workers", "solved in this process: luminaires (--luminaires) run in one process for now")
+            raise ConfigError(f"--luminaires {args.luminaires}: luminaires are solved in one process or shared by "
+                              f"workers, not divided ({', '.join(away)})")
     # caught from the start: a stop while the scene loads and meshes ends the command at once
     stop = _Interrupt(before="while the scene loaded and meshed")
     previous = _catch(stop)
@@ -175,7 +171,9 @@ def cmd_solve(args) -> int:
                               width=args.width, height=args.height, divide=divide, planes=planes or None,
                               up=args.up, two_sided=args.two_sided, workplane=args.workplane,
                               loaded=(loaded[0], loaded[1], loaded[3]) if loaded is not None else None,
-                              luminaires_path=args.luminaires, on_meshed=stop.running)
+                              # a mesh handed on is lit by the luminaires already (``_auto_workers``)
+                              luminaires_path=args.luminaires if loaded is None or loaded[3] is None else None,
+                              on_meshed=stop.running)
     finally:
         _restore(previous)
     final = SimpleNamespace(**report["error"]) if report.get("error") else None
@@ -196,6 +194,7 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
     from dcrad.meshing.mesh import estimate_elements
     from dcrad.pipeline import default_patch_size, patch_limit, resolve_scene
     from dcrad.solving.strategy import gathers, local
+    from dcrad.transport.luminaires import load_schedule
 
     if args.planes or args.subscenes > 1:
         return 0, Choice("workers", "solved in this process (--workers 0 by default with --planes or "
@@ -215,15 +214,18 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
     if n <= patch_limit():
         # the unknowns, not the patches: a run's rays follow them (clusters share one B), and
         # only a run in this process settles its clusters (passes.settle); the mesh is handed on
-        patches = scene.patches(size, adapt=not (args.patch_size and args.patch_size > 0))
+        # the luminaires light it before meshing, so that the refinement follows their light too
+        extra = tuple(load_schedule(args.luminaires, scene, args.scale)) if args.luminaires is not None else ()
+        patches = scene.patches(size, adapt=not (args.patch_size and args.patch_size > 0), sources=extra)
         n = patches.units
     strategy = local(n, os.cpu_count() or 1, gathers(config, n))
     workers, choice = strategy.workers, strategy.why
-    if scene.sources and workers > 0:
-        # light sources that are not surfaces run in one process for now (emitters.check_single)
-        workers, choice = 0, Choice("workers", f"solved in this process: the scene's glTF lights "
-                                               f"({len(scene.sources)} KHR_lights_punctual point or spot light(s)) "
-                                               f"run in one process for now")
+    if (scene.sources or args.luminaires is not None) and strategy.kind == "divided":
+        # light sources that are not surfaces run in one process or shared, not divided (emitters.check_single)
+        what = (f"the scene's glTF lights ({len(scene.sources)} KHR_lights_punctual point or spot light(s))"
+                if scene.sources else f"the luminaires of {args.luminaires}")
+        workers, choice = 0, Choice("workers", f"solved in this process: {what} run in one process or shared by "
+                                               f"workers, and two local workers would divide this scene")
     if scene.tau is not None and workers > 0:
         # glass runs in one process for now (optics.check_single)
         workers, choice = 0, Choice("workers", "solved in this process: the scene's glass (ideal specular "
@@ -357,7 +359,8 @@ def _run_embedded(args, config: SolverConfig, out: Path, stop: "_Interrupt") -> 
             if not args.subscenes:  # unset: the coordinator chooses (a shared run where the light is gathered)
                 divide["subscenes"] = None
             try:
-                job = client.submit(cluster.address, path, solver, divide, (args.width, args.height))
+                job = client.submit(cluster.address, path, solver, divide, (args.width, args.height),
+                                    luminaires=args.luminaires)
             except client.grpc.RpcError as exc:
                 raise DcradError(client.rpc_message(exc, cluster.address)) from None
             if cluster.web_url:

@@ -384,7 +384,7 @@ def test_the_command_reports_the_utilisation_factor_against_the_form_factor(tmp_
     assert proc.returncode == 0, proc.stderr
     assert "1 luminaire(s)" in proc.stdout and "downlight.ies" in proc.stdout
     report = json.loads((out / "report.json").read_text())
-    assert any(c["code"] == "workers" and "luminaires" in c["text"] for c in report["choices"])
+    assert any(c["code"] == "workers" and "this process" in c["text"] for c in report["choices"])
     pts = np.load(out / "radiosity.npz")["workplane_points"]
     s = report["photometry"]["workplane"]["spacing_m"]
     lo, hi = pts[:, [0, 2]].min(axis=0) - s / 2 - 2.0, pts[:, [0, 2]].max(axis=0) + s / 2 - 2.0
@@ -460,8 +460,8 @@ def test_bad_input_is_one_line_naming_the_file_and_the_problem(tmp_path):
 
 
 def test_the_command_refuses_bad_luminaires_in_one_line_and_exit_2(tmp_path, capsys):
-    """A bad schedule, and luminaires asked of runs that cannot carry them (workers, subscenes, the
-    service): exit 2 and one line, before any work."""
+    """A bad schedule, and luminaires asked of runs that cannot carry them (divided: subscenes,
+    planes, a job submitted with subscenes): exit 2 and one line, before any work."""
     path = box(tmp_path / "room")
     g = np.arange(0.0, 90.1, 10.0)
     ies(tmp_path / "neg.ies", g, [0.0], [np.cos(np.radians(g)) * 100 - 50])
@@ -473,12 +473,92 @@ def test_the_command_refuses_bad_luminaires_in_one_line_and_exit_2(tmp_path, cap
                           timeout=300)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
     assert "bad.json: luminaire 1: " in proc.stderr and "neg.ies: negative candela" in proc.stderr
-    for flags, says in [(["--workers", "2"], "--workers 2"), (["--workers", "0", "--subscenes", "2"], "--subscenes 2"),
-                        (["--planes", "x=2"], "--planes")]:
+    for flags, says in [(["--workers", "0", "--subscenes", "2"], "--subscenes 2"), (["--planes", "x=2"], "--planes"),
+                        (["--workers", "2", "--subscenes", "2"], "--subscenes 2")]:
         code = main(["solve", str(path), "--luminaires", str(good), "--out", str(tmp_path / "o2"), *flags])
         err = capsys.readouterr().err
-        assert code == 2 and err.count("\n") == 1 and says in err and "this process" in err, err
-    code = main(["submit", str(path), "--luminaires", str(good), "--coordinator", "127.0.0.1:1"])
+        assert code == 2 and err.count("\n") == 1 and says in err and "not divided" in err, err
+    code = main(["submit", str(path), "--luminaires", str(good), "--subscenes", "2", "--coordinator", "127.0.0.1:1"])
     err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and "does not take luminaire schedules" in err, err
+    assert code == 2 and err.count("\n") == 1 and "runs shared on the workers, not divided" in err, err
     assert not (tmp_path / "o2").exists()
+
+
+def test_light_sources_travel_to_workers_exactly(tmp_path):
+    """Each kind of source that runs on workers (source_wire.py: an isotropic point, a luminaire of a
+    file with a tilt table, a glTF point and spot light) comes back from the patch table's arrays
+    the same source to the bit: its power, its rays from one random stream, its exact irradiance.
+    A point source whose distribution is a Python function cannot travel and says so by name."""
+    from dcrad.io.scene import load_scene
+    from dcrad.transport.emitters import PointSource
+    from dcrad.transport.punctual import PunctualLight, SpotLight
+    from dcrad.transport.source_wire import sources_from_table, sources_table
+
+    path = box(tmp_path, rho=0.5)
+    tilt = ([0.0, 45.0, 90.0], [1.0, 0.9, 0.7])
+    g = np.arange(0.0, 180.1, 15.0)
+    ies(tmp_path / "lamp.ies", g, [0.0, 90.0], np.vstack([100 + g, 50 + 2 * g]), tilt=tilt, units=1)
+    schedule(tmp_path / "lights.json", [{"file": "lamp.ies", "position": [2.0, 2.5, 2.0], "aim": [0.3, -1.0, 0.2],
+                                         "rotation": 30.0, "multiplier": 0.8, "name": "tilted"}])
+    scene = load_scene(path)
+    sources = (PointSource([1.0, 2.0, 1.0], [0.5, 0.4, 0.3], name="iso"),
+               *load_schedule(tmp_path / "lights.json", scene),
+               PunctualLight(position=np.array([3.0, 2.0, 1.0]), candela=120.0, color=np.array([1.0, 0.8, 0.6])),
+               SpotLight(position=np.array([1.0, 2.8, 3.0]), candela=300.0, axis=np.array([0.2, -1.0, 0.1]),
+                         inner=0.2, outer=0.6, name="spot"))
+    table = sources_table(sources)
+    back = sources_from_table({k: np.frombuffer(v.tobytes(), v.dtype) for k, v in table.items()})
+    tracer = Tracer(scene.vertices[scene.faces])
+    pts = np.random.default_rng(1).uniform([0.1, 0.1, 0.1], [3.9, 0.1, 3.9], (500, 3))
+    normals = np.tile([0.0, 1.0, 0.0], (500, 1))
+    assert [type(s) for s in back] == [type(s) for s in sources]
+    for a, b in zip(sources, back):
+        assert a.name == b.name and np.array_equal(a.power(), b.power())
+        ra, rb = a.rays(999, np.random.default_rng(5)), b.rays(999, np.random.default_rng(5))
+        assert np.array_equal(ra.dirs, rb.dirs) and np.array_equal(ra.power, rb.power)
+        assert np.array_equal(a.irradiance(pts, normals, tracer, 1e-6), b.irradiance(pts, normals, tracer, 1e-6))
+    with pytest.raises(ConfigError, match="'?function'?-lit: a point source whose intensity is a Python function"):
+        sources_table([PointSource([1.0, 1.0, 1.0], lambda d: np.ones((len(d), 3)), name="'function'-lit")])
+
+
+def test_a_luminaire_job_runs_shared_on_workers_as_in_process(tmp_path):
+    """`dcrad submit --luminaires` as the client uploads it (the schedule and its photometric file
+    under luminaires/): the job runs shared on two workers and gives the in-process shared run's B
+    to the bit, with the luminaires' report and closed books.  A tol-mode job with them would be
+    divided, and is refused at the upload naming why."""
+    from coordinator import client
+    from coordinator.embedded import LocalCluster
+    from dcrad.config import SolverConfig
+    from dcrad.pipeline import prepare
+    from dcrad.solving.share import LocalShares, run_shared
+
+    path = box(tmp_path / "room", rho=0.5)
+    sub = tmp_path / "photometry"
+    sub.mkdir()
+    cosine_downlight(sub)
+    lights = schedule(tmp_path / "lights.json", [{"file": "photometry/downlight.ies", "position": [2.0, 2.9, 2.0]},
+                                                 {"file": "photometry/downlight.ies", "position": [1.0, 2.9, 3.0],
+                                                  "multiplier": 0.5}])
+    settings = {"accuracy": 0.04, "seed": 3, "patch_size": 0.4}
+    _, p, _ = prepare(path, 0.4, sources=lambda sc: load_schedule(lights, sc))
+    cfg = SolverConfig(accuracy=0.04, seed=3)
+    ref = run_shared(p, cfg, 2, LocalShares(p, cfg, Tracer.mesh(p)))
+    p.pool()
+    with LocalCluster(workers=2, data=tmp_path / "cluster") as cluster:
+        job = client.submit(cluster.address, path, settings, {}, luminaires=lights)
+        last = client.watch(cluster.address, job.job_id)
+        assert last is not None and last.job.state == "done", last.job.error if last else None
+        client.fetch(cluster.address, job.job_id, tmp_path / "out")
+        with pytest.raises(ConfigError, match="run shared on the workers, and this job would be divided: a shared "
+                                              "run needs accuracy mode"):
+            try:
+                client.submit(cluster.address, path, {"tol": 0.01}, {}, luminaires=lights)
+            except client.grpc.RpcError as exc:
+                raise ConfigError(exc.details()) from None
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    b = np.load(tmp_path / "out" / "radiosity.npz")["patch_B"]
+    assert np.array_equal(b, p.radiosity)
+    assert report["stats"]["rays"] == ref.stats.rays and report["ledger"]["closure"] < 1e-9
+    assert report["shared"]["workers"] == 2 and report["luminaires"]["types"][0]["count"] == 2
+    # pi I0 lm each (a cosine downlight of I0 = 1000 cd, its table interpolated), the second at half
+    assert report["luminaires"]["lumens"] == pytest.approx(1.5 * math.pi * 1000.0, rel=1e-4)

@@ -279,8 +279,9 @@ def test_a_bad_light_is_one_error_naming_the_file_and_the_light(tmp_path, light,
 
 
 def test_the_command_refuses_a_bad_light_and_runs_that_cannot_carry_lights(tmp_path, capsys):
-    """Exit 2 and one line: a bad light; a divided run (--subscenes 2) and the service's upload
-    (a coordinator's job manager) name the glTF lights they cannot carry."""
+    """Exit 2 and one line: a bad light; a divided run (--subscenes 2), and the service's upload (a
+    coordinator's job manager) of a job that would be divided (tol mode), name the glTF lights they
+    cannot carry; the service takes the same job in accuracy mode (it runs shared)."""
     bad = box_gltf(tmp_path / "bad.gltf", [{"type": "point", "intensity": -1.0}], [placed(0)])
     assert main(["solve", str(bad), "--out", str(tmp_path / "o1"), "--workers", "0"]) == 2
     err = capsys.readouterr().err
@@ -295,10 +296,12 @@ def test_the_command_refuses_a_bad_light_and_runs_that_cannot_carry_lights(tmp_p
     from dcrad.v1 import dcrad_pb2 as pb
 
     jobs = JobManager(tmp_path / "coordinator", WorkerPool())
-    with pytest.raises(ConfigError, match=r"good\.gltf: its glTF lights \(glTF point light 'bulb'\) are solved in "
-                                          r"one process for now, not by the service: dcrad solve good\.gltf "
-                                          r"--workers 0"):
-        jobs.create(pb.JobSpec(scene="good.gltf"), {"good.gltf": good.read_bytes()})
+    with pytest.raises(ConfigError, match=r"good\.gltf: its light sources that are not surfaces \(glTF point light "
+                                          r"'bulb'\) run shared on the workers, and this job would be divided: a "
+                                          r"shared run needs accuracy mode"):
+        jobs.create(pb.JobSpec(scene="good.gltf", solver=pb.SolverSettings(tol=0.01)), {"good.gltf": good.read_bytes()})
+    job = jobs.create(pb.JobSpec(scene="good.gltf"), {"good.gltf": good.read_bytes()})
+    assert job.prepared is not None and len(job.prepared[1].sources) == 1
 
 
 def test_the_false_colour_image_marks_the_light_where_the_camera_sees_it(tmp_path):

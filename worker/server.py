@@ -34,6 +34,7 @@ from dcrad.solving.share import (
 )
 from dcrad.transport.direct import GatherStopped
 from dcrad.transport.rays import Tracer
+from dcrad.transport.source_wire import sources_from_table
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import ArrayAssembler, arrays_to_chunks, ledger_to_pb, plan_from_pb, share_phase_name
@@ -181,6 +182,7 @@ class WorkerServicer(pb_grpc.WorkerServicer):
                 table = given.get("scene", {})
                 t_read = time.perf_counter()
                 patches = Patches.from_table(table, list(header.names))
+                patches.sources = sources_from_table(table)
                 self.scenes[job] = (patches, await asyncio.to_thread(Tracer.mesh, patches))
                 log.info("job %s: patch table of %d patches (%.0f MB) read in %.2f s, loaded in %.2f s", job,
                          len(patches), sum(v.nbytes for v in table.values()) / 1e6, t_read - t_in,

@@ -60,7 +60,6 @@ from dcrad.solving.rounds import budget_cut_note, fit_round, gather_rounds
 from dcrad.solving.solver import ReplicaRole, Snapshot, Solver, Stats
 from dcrad.solving.stiffness import Stiffness
 from dcrad.transport.direct import AnalyticGather, DirectTally, GatherStopped, merge, shared_rate
-from dcrad.transport.emitters import check_single
 from dcrad.transport.final import FinalGather
 from dcrad.transport.optics import check_single as check_glass
 from dcrad.transport.rays import Tracer
@@ -374,6 +373,13 @@ class LocalShares:
         return out
 
 
+def empty_tally(patches: Patches) -> DirectTally:
+    """A direct gather that gathered nothing (a scene with no emitting patch)."""
+    z3, none = np.zeros(3), np.zeros(0, np.int64)
+    return DirectTally(np.zeros((0, 3)), none, z3, z3.copy(), np.zeros(max(len(patches.names), 1)), none.copy(),
+                       none.copy(), np.zeros(0), z3.copy(), z3.copy(), z3.copy(), np.zeros((0, 3)), 0)
+
+
 def merged_direct(tallies: list[DirectTally], patches: Patches) -> DirectTally:
     """One tally of the shares' gathers over disjoint receivers."""
     out = tallies[0]
@@ -388,7 +394,6 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     ``direct``, ``replicas`` and ``gather`` methods (the coordinator's, on workers).  Returns None
     when the lights make no exact form factors (the caller solves another way).  ``on_phase(name,
     elapsed s, rays so far, estimate or None)`` after each phase.  The result is left in ``patches``."""
-    check_single(patches.sources, "shared")
     check_glass(patches.glazing, "shared")
     cfg = resolve(config, patches.read_units)
     t0 = time.perf_counter()
@@ -397,7 +402,12 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     try:
         if should_stop is not None and should_stop():  # asked before it began (while it loaded)
             raise GatherStopped
-        tallies = shares.direct(work_shares(patches, k, DIRECT_SHARES_PER_WORKER), should_stop)
+        if patches.sources and not patches.emission.any():
+            # lit by light sources alone: no patch emits, so there is no patch light to gather; each
+            # replica gathers the sources' light exactly (DirectPhase.shoot_sources)
+            tallies = [empty_tally(patches)]
+        else:
+            tallies = shares.direct(work_shares(patches, k, DIRECT_SHARES_PER_WORKER), should_stop)
     except GatherStopped:  # as a run in one process stopped in its gather: B = E, nothing booked
         return stopped_in_direct(patches, cfg, k, time.perf_counter() - t0)
     if any(t is None for t in tallies):

@@ -19,7 +19,8 @@ the exact direct irradiance it puts on any point.  What asks them:
 Their exact direct light is the run's direct light, as the emitting patches' gathered light is: in
 accuracy mode a run follows the final plan with them (``DirectPhase.sources_only``; not when a
 source had to be shot).  A new kind of emitter implements the three methods below and touches
-nothing else.  What they are not yet: run divided or shared (``check_single``).
+nothing else.  They run in one process and shared by workers (source_wire.py carries them), not
+divided yet (``check_single``).
 """
 
 from __future__ import annotations
@@ -118,6 +119,19 @@ class PointSource:
             if not (np.isfinite(self.intensity).all() and (self.intensity >= 0).all()):
                 raise ConfigError(f"{self.name}: intensity {self.intensity.tolist()} W/sr must be finite and >= 0")
         self._power: np.ndarray | None = None
+
+    def to_wire(self) -> dict:
+        """What rebuilds it on a worker (``from_wire``; source_wire.py), JSON-able and exact.  A
+        distribution given as a Python function cannot travel: ConfigError naming the source."""
+        if callable(self.intensity):
+            raise ConfigError(f"{self.name}: a point source whose intensity is a Python function runs in this "
+                              f"process only (--workers 0)")
+        return {"name": self.name, "position": self.position.tolist(),
+                "intensity": np.asarray(self.intensity, np.float64).tolist()}
+
+    @classmethod
+    def from_wire(cls, d: dict) -> "PointSource":
+        return cls(np.array(d["position"], np.float64), np.array(d["intensity"], np.float64), name=str(d["name"]))
 
     def intensity_at(self, dirs: np.ndarray) -> np.ndarray:
         """(m,3) W/sr toward unit ``dirs`` (m,3)."""
@@ -226,4 +240,4 @@ def check_single(sources, how: str) -> None:
     """ConfigError when a run that cannot carry sources yet (``how``: divided, shared) is asked to."""
     if sources:
         raise ConfigError(f"light sources that are not surfaces ({', '.join(s.name for s in sources)}) run in one "
-                          f"process for now (--workers 0, one subscene), not {how}")
+                          f"process or shared by workers, not {how}")

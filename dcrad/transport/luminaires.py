@@ -412,6 +412,38 @@ class Luminaire(PointSource):
         """lm it emits: the table's flux times the multiplier and tilt factor."""
         return self.photometric.lumens * self.scale
 
+    def to_wire(self) -> dict:
+        """What rebuilds it on a worker (``from_wire``; source_wire.py): JSON-able, every float exact
+        (its frame and scale as computed here, so a worker's copy is this one to the bit)."""
+        ph = self.photometric
+        dist = ph.distribution
+        return {"name": self.name, "position": self.position.tolist(), "aim": self.aim.tolist(),
+                "c0": self.c0.tolist(), "multiplier": self.multiplier, "scale": self.scale, "placed": self.placed,
+                "photometric": {"file": ph.file, "label": ph.label, "lamp_lumens": ph.lamp_lumens,
+                                "input_watts": ph.input_watts, "opening_m": list(ph.opening_m),
+                                "opening_shape": ph.opening_shape,
+                                "tilt": None if ph.tilt is None else [ph.tilt[0].tolist(), ph.tilt[1].tolist()],
+                                "c": dist.c.tolist(), "gamma": dist.gamma.tolist(), "cd": dist.cd.tolist()}}
+
+    @classmethod
+    def from_wire(cls, d: dict) -> "Luminaire":
+        ph = d["photometric"]
+        tilt = None if ph["tilt"] is None else (np.array(ph["tilt"][0], np.float64),
+                                                np.array(ph["tilt"][1], np.float64))
+        photometric = Photometric(str(ph["file"]), str(ph["label"]),
+                                  Distribution(np.array(ph["c"], np.float64), np.array(ph["gamma"], np.float64),
+                                               np.array(ph["cd"], np.float64)),
+                                  ph["lamp_lumens"], ph["input_watts"], tuple(ph["opening_m"]),
+                                  str(ph["opening_shape"]), tilt)
+        lum = cls(position=np.array(d["position"], np.float64), name=str(d["name"]), photometric=photometric,
+                  aim=np.array(d["aim"], np.float64), c0=np.array(d["c0"], np.float64),
+                  multiplier=float(d["multiplier"]), placed=dict(d["placed"]))
+        # the frame and scale as the coordinator computed them, not normalised again (bit for bit)
+        lum.aim, lum.c0 = np.array(d["aim"], np.float64), np.array(d["c0"], np.float64)
+        lum.c90 = np.cross(lum.c0, lum.aim)
+        lum.scale = float(d["scale"])
+        return lum
+
     def candela(self, dirs: np.ndarray) -> np.ndarray:
         """(m,) cd toward unit ``dirs`` (m,3) of the solver's frame: the file's table at the
         direction's (gamma, C) in the luminaire's frame."""

@@ -71,6 +71,16 @@ class PunctualLight(PointSource):
         """lm it emits."""
         return 4.0 * math.pi * self.candela
 
+    def to_wire(self) -> dict:
+        """What rebuilds it on a worker (``from_wire``; source_wire.py), JSON-able and exact."""
+        return {"name": self.name, "position": self.position.tolist(), "candela": self.candela,
+                "color": self.color.tolist(), "placed": self.placed}
+
+    @classmethod
+    def from_wire(cls, d: dict) -> "PunctualLight":
+        return cls(position=np.array(d["position"], np.float64), name=str(d["name"]), candela=float(d["candela"]),
+                   color=np.array(d["color"], np.float64), placed=dict(d["placed"]))
+
     def power(self) -> np.ndarray:
         return 4.0 * math.pi * self.peak
 
@@ -92,6 +102,17 @@ class SpotLight(PunctualLight):
         self.cos_inner, self.cos_outer = math.cos(self.inner), math.cos(self.outer)
         super().__post_init__()
         self.intensity = self.spot_intensity
+
+    def to_wire(self) -> dict:
+        return super().to_wire() | {"axis": self.axis.tolist(), "inner": self.inner, "outer": self.outer}
+
+    @classmethod
+    def from_wire(cls, d: dict) -> "SpotLight":
+        spot = cls(position=np.array(d["position"], np.float64), name=str(d["name"]), candela=float(d["candela"]),
+                   color=np.array(d["color"], np.float64), placed=dict(d["placed"]),
+                   axis=np.array(d["axis"], np.float64), inner=float(d["inner"]), outer=float(d["outer"]))
+        spot.axis = np.array(d["axis"], np.float64)  # as the coordinator normalised it (bit for bit)
+        return spot
 
     def falloff(self, cos: np.ndarray) -> np.ndarray:
         """(m,) share of the peak intensity at angles of cosine ``cos`` (m,) from the axis."""
