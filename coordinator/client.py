@@ -364,10 +364,6 @@ def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
 
 @_handled
 def cmd_submit(args) -> int:
-    if args.luminaires is not None and args.subscenes > 0:
-        # a divided run cannot carry light sources that are not surfaces yet (emitters.check_single)
-        raise ConfigError(f"--luminaires {args.luminaires}: a job with luminaires runs shared on the workers, not "
-                          f"divided into --subscenes {args.subscenes}")
     address = resolve_address(args.coordinator)
     solver = from_args(SolverConfig, args).as_dict() | scene_values(args)
     # subscenes 0 travels as 0: the coordinator makes one per registered worker

@@ -33,15 +33,14 @@ from dcrad.choices import Choice
 from dcrad.config import SolverConfig, unused_divide_note
 from dcrad.division.divide import DivideConfig
 from dcrad.division.placement import check_subscenes
-from dcrad.errors import ConfigError, DcradError
+from dcrad.errors import DcradError
 from dcrad.outputs import render
 from dcrad.outputs.report import residual_estimate
 from dcrad.pipeline import finish_run, output_views, prepare, scene_settings
 from dcrad.runs import Divided, RunHooks, Shared
 from dcrad.settings import from_pb
 from dcrad.solving.accuracy import resolve
-from dcrad.solving.strategy import Strategy, on_workers, shares_sources
-from dcrad.transport.direct import MAX_ANALYTIC_RECEIVERS
+from dcrad.solving.strategy import Strategy, on_workers
 from dcrad.transport.luminaires import load_schedule
 from dcrad.transport.optics import opaque_for
 from dcrad.transport.source_wire import sources_table
@@ -251,8 +250,7 @@ class JobManager:
                 raise DcradError(f"the upload has no file '{spec.luminaires}' (the luminaire schedule named in "
                                  f"the job)")
             scene, patches, size = self._prepare(spec, scene_dir, phases)
-            if patches.sources:
-                self._check_sources(spec, patches)
+            sources_table(patches.sources)  # every light source can travel to the workers
             glass = opaque_for(patches, "the service's")  # shared and divided runs carry no glass yet
             if glass is not None:
                 scene.warnings.append(glass)
@@ -277,23 +275,6 @@ class JobManager:
             (lambda sc: load_schedule(scene_dir / spec.luminaires, sc, scale))
         return prepare(scene_dir / spec.scene, spec.solver.patch_size or None, scale, spec.solver.up or None,
                        spec.solver.two_sided, timings=phases, workplane=spec.solver.workplane, sources=sources)
-
-    def _check_sources(self, spec: pb.JobSpec, patches) -> None:
-        """Light sources that are not surfaces (luminaires, glTF point and spot lights) run shared on
-        the workers, not divided (emitters.check_single): a job that would divide is refused at the
-        upload, naming why, not when it starts; so is a source that cannot travel (source_wire)."""
-        sources_table(patches.sources)
-        config = solver_config(spec.solver)
-        receivers = int(np.count_nonzero(patches.rho.any(axis=1)))
-        names = ", ".join(s.name for s in patches.sources[:4]) + (", ..." if len(patches.sources) > 4 else "")
-        why = ("--subscenes asks for a divided run" if spec.divide.subscenes
-               else "" if shares_sources(config, receivers)
-               else f"a shared run needs accuracy mode with the direct light gathered and at most "
-                    f"{MAX_ANALYTIC_RECEIVERS} receiving patches (it has {receivers})")
-        if why:
-            raise ConfigError(f"{spec.scene}: its light sources that are not surfaces ({names}) run shared on the "
-                              f"workers, and this job would be divided: {why}; or solve it in one process: "
-                              f"dcrad solve SCENE --workers 0")
 
     def start(self, job: Job) -> None:
         threading.Thread(target=self._run, args=(job,), name=f"job-{job.id}", daemon=True).start()
@@ -354,7 +335,7 @@ class JobManager:
             raise NoWorkers(f"no worker registered within {wait:.0f} s")
         receivers = int(np.count_nonzero(patches.rho.any(axis=1)))
         strategy = on_workers(config, receivers, len(patches), live, spec.divide.subscenes,
-                              resumed=job.resume is not None, sources=bool(patches.sources))
+                              resumed=job.resume is not None)
         if strategy.kind == "shared":
             if self._solve_shared(job, scene, patches, size, config, timings, mem, strategy.why):
                 return

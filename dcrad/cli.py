@@ -126,14 +126,6 @@ def cmd_solve(args) -> int:
 
     check_image_size(args.width, args.height)
     choice, loaded = None, None
-    if args.luminaires is not None:
-        # light sources that are not surfaces run in one process or shared on workers, not divided
-        # (emitters.check_single): refused here by the flags, before any work or worker starts
-        away = [flag for flag, given in ((f"--subscenes {args.subscenes}", args.subscenes > 1),
-                                         ("--planes", bool(args.planes))) if given]
-        if away:
-            raise ConfigError(f"--luminaires {args.luminaires}: luminaires are solved in one process or shared by "
-                              f"workers, not divided ({', '.join(away)})")
     # caught from the start: a stop while the scene loads and meshes ends the command at once
     stop = _Interrupt(before="while the scene loaded and meshed")
     previous = _catch(stop)
@@ -220,12 +212,6 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
         n = patches.units
     strategy = local(n, os.cpu_count() or 1, gathers(config, n))
     workers, choice = strategy.workers, strategy.why
-    if (scene.sources or args.luminaires is not None) and strategy.kind == "divided":
-        # light sources that are not surfaces run in one process or shared, not divided (emitters.check_single)
-        what = (f"the scene's glTF lights ({len(scene.sources)} KHR_lights_punctual point or spot light(s))"
-                if scene.sources else f"the luminaires of {args.luminaires}")
-        workers, choice = 0, Choice("workers", f"solved in this process: {what} run in one process or shared by "
-                                               f"workers, and two local workers would divide this scene")
     if scene.tau is not None and workers > 0:
         # glass runs in one process for now (optics.check_single)
         workers, choice = 0, Choice("workers", "solved in this process: the scene's glass (ideal specular "

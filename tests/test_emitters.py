@@ -193,17 +193,27 @@ def test_a_new_kind_of_emitter_touches_only_its_class(tmp_path):
     assert wp["lux"][centre] == pytest.approx(179.0 * 1.0 / (2.0 - 0.0001) ** 2, rel=1e-6)
 
 
-def test_sources_are_refused_where_they_cannot_run_yet_and_bad_ones_by_name(tmp_path):
-    """Divided and shared runs cannot carry them yet: one line saying so; a bad position or
-    intensity is named."""
+def test_a_divided_run_gives_each_source_to_the_subscene_holding_it_and_bad_ones_are_named(tmp_path):
+    """Each source belongs to the one subscene whose cell holds it (one a little outside every cell
+    to the nearest), which books it as emitted and held until its first iterate shoots it; a bad
+    position or intensity is named."""
     from dcrad.config import DivideConfig, SolverConfig
     from dcrad.division.divide import build_subscenes
     from dcrad.pipeline import prepare
 
     _, p, _ = prepare(box(tmp_path, 0.5), 0.5)
-    p.sources = (PointSource([2.0, 1.5, 2.0], np.ones(3), name="lamp 7"),)
-    with pytest.raises(ConfigError, match="lamp 7.*not divided"):
-        build_subscenes(p, SolverConfig(), DivideConfig(subscenes=2))
+    p.sources = (PointSource([0.5, 1.5, 0.5], np.ones(3), name="lamp 7"),
+                 PointSource([3.5, 1.5, 3.5], np.ones(3), name="lamp 8"),
+                 PointSource([4.2, 1.5, 3.9], np.ones(3), name="outside"))
+    subs, _, _, part = build_subscenes(p, SolverConfig(), DivideConfig(subscenes=2))
+    held = {s.cell: [src.name for src in s.patches.sources] for s in subs}
+    assert sorted(n for names in held.values() for n in names) == ["lamp 7", "lamp 8", "outside"]
+    assert any(names == ["lamp 7"] for names in held.values())  # opposite corners: different cells
+    for s in subs:
+        state = s.state()
+        own = 4 * np.pi * len(s.patches.sources)
+        assert state.ledger.emitted[0] == pytest.approx(float(s.patches.emitted_power[0]) + own)
+        assert state.ledger.closure() < 1e-12
     with pytest.raises(ConfigError, match="position"):
         PointSource([np.nan, 0.0, 0.0])
     with pytest.raises(ConfigError, match="intensity"):

@@ -22,7 +22,7 @@ import pytest
 
 import dcrad
 from dcrad.cli import main
-from dcrad.errors import ConfigError, SceneFormatError, SceneValueError
+from dcrad.errors import SceneFormatError, SceneValueError
 from dcrad.io.scene import NO_EMITTERS
 from dcrad.outputs.photometry import EFFICACY, Y_WEIGHTS, direct_irradiance, to_lux, workplane
 from dcrad.outputs.render import Camera, draw_marks, marks_in_view
@@ -278,28 +278,20 @@ def test_a_bad_light_is_one_error_naming_the_file_and_the_light(tmp_path, light,
         assert "KHR_lights_punctual light 0 ('L1', node 'lamp')" in message, message
 
 
-def test_the_command_refuses_a_bad_light_and_runs_that_cannot_carry_lights(tmp_path, capsys):
-    """Exit 2 and one line: a bad light; a divided run (--subscenes 2), and the service's upload (a
-    coordinator's job manager) of a job that would be divided (tol mode), name the glTF lights they
-    cannot carry; the service takes the same job in accuracy mode (it runs shared)."""
+def test_the_command_refuses_a_bad_light_and_the_service_takes_good_ones(tmp_path, capsys):
+    """Exit 2 and one line naming the file and the light for a bad light; the service's upload (a
+    coordinator's job manager) takes a file with good ones, its lights on the job's patches."""
     bad = box_gltf(tmp_path / "bad.gltf", [{"type": "point", "intensity": -1.0}], [placed(0)])
     assert main(["solve", str(bad), "--out", str(tmp_path / "o1"), "--workers", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "bad.gltf" in err and "intensity -1.0 cd" in err, err
     good = box_gltf(tmp_path / "good.gltf", [{"type": "point", "intensity": 100.0, "name": "bulb"}], [placed(0)])
-    assert main(["solve", str(good), "--out", str(tmp_path / "o2"), "--subscenes", "2"]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "glTF point light 'bulb'" in err and "not divided" in err, err
 
     from coordinator.jobs import JobManager
     from coordinator.remote import WorkerPool
     from dcrad.v1 import dcrad_pb2 as pb
 
     jobs = JobManager(tmp_path / "coordinator", WorkerPool())
-    with pytest.raises(ConfigError, match=r"good\.gltf: its light sources that are not surfaces \(glTF point light "
-                                          r"'bulb'\) run shared on the workers, and this job would be divided: a "
-                                          r"shared run needs accuracy mode"):
-        jobs.create(pb.JobSpec(scene="good.gltf", solver=pb.SolverSettings(tol=0.01)), {"good.gltf": good.read_bytes()})
     job = jobs.create(pb.JobSpec(scene="good.gltf"), {"good.gltf": good.read_bytes()})
     assert job.prepared is not None and len(job.prepared[1].sources) == 1
 

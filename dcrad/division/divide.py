@@ -53,7 +53,7 @@ from dcrad.solving.energy import Ledger
 from dcrad.solving.snapshots import SnapshotStore
 from dcrad.solving.solver import Snapshot
 from dcrad.solving.stiffness import Stiffness, stiffness
-from dcrad.transport.emitters import check_single
+from dcrad.transport.emitters import sources_power
 from dcrad.transport.optics import check_single as check_glass
 
 __all__ = [
@@ -341,9 +341,10 @@ class SubsceneSpec:
 
     def state(self) -> SubsceneState:
         p = self.patches
-        led = Ledger(emitted=p.emitted_power.copy())
-        led.unshot = p.unshot_power.copy()
-        led.unshot_abs = (np.abs(p.unshot) * p.area[:, None]).sum(axis=0)
+        own = sources_power(p.sources)  # its light sources, not shot yet: held as unshot
+        led = Ledger(emitted=p.emitted_power + own)
+        led.unshot = p.unshot_power + own
+        led.unshot_abs = (np.abs(p.unshot) * p.area[:, None]).sum(axis=0) + np.abs(own)
         return SubsceneState(self.cell, led, 0, 0, 0, 0, p.total_area, back_by_obj=np.zeros(max(len(p.names), 1)),
                              noise=NoiseTally(p).sums())
 
@@ -354,7 +355,6 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     No Solver and no Embree scene is built (the coordinator, which traces nothing,
     sends these to workers).  Returns (specs, boundaries, parents, partition).
     """
-    check_single(patches.sources, "divided")
     check_glass(patches.glazing, "divided")
     if planes is None and boxes is None:
         check_subscenes(divide.subscenes, len(patches))
@@ -368,6 +368,9 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     part = partition(patches, divide.subscenes, planes=planes, boxes=boxes,
                      **({"work": work} if planes is None and boxes is None else {}))
     pieces = clip(patches, part)
+    owners = source_cells(patches.sources, part)
+    for cell, (sub, _) in zip(part.cells, pieces):
+        sub.sources = tuple(src for src, owner in zip(patches.sources, owners) if owner == cell.id)
     # Portal cells must be small next to walls and doorways: re-emitted twin light
     # starts anywhere in its cell, and the part of a cell inside a wall loses it
     # to back faces (0.6 m cells: 24% too dark behind a doorway; 0.05 m: 3%).
@@ -384,7 +387,7 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
             continue
         boundaries.append(make_boundary(len(boundaries), f.axis, f.offset, lo, hi, f.side_a, f.side_b,
                                         cell_size, divide.solid))
-    emitted = float(patches.emitted_power.sum())
+    emitted = float(patches.emitted_power.sum() + sources_power(patches.sources).sum())  # the sources' power too
     per_ray = emitted / config.rays_per_power if emitted > 0 else 1.0
     specs = []
     for cell, (sub, _) in zip(part.cells, pieces):
@@ -397,6 +400,21 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
         specs.append(SubsceneSpec(cell.id, sub, touching, config.replace(max_shooters=min(share, config.max_shooters)),
                                   per_ray, divide.mode, target))
     return specs, boundaries, [par for _, par in pieces], part
+
+
+def source_cells(sources, part) -> np.ndarray:
+    """(s,) the cell each light source that is not a patch belongs to: the cell holding its position
+    (its light leaves through the cell's boundaries like any other), or the nearest cell for one
+    just outside every cell (a schedule may place a luminaire a little outside the patches' box)."""
+    if not sources:
+        return np.zeros(0, np.int64)
+    pos = np.array([s.position for s in sources], np.float64)
+    owner = part.locate(pos)
+    for i in np.flatnonzero(owner < 0):
+        gap = [float(np.linalg.norm(np.maximum(np.maximum(np.subtract(c.lo, pos[i]), np.subtract(pos[i], c.hi)), 0.0)))
+               for c in part.cells]
+        owner[i] = part.cells[int(np.argmin(gap))].id
+    return owner
 
 
 def build_subscenes(patches: Patches, config: SolverConfig, divide: DivideConfig, planes=None, boxes=None):

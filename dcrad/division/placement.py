@@ -12,6 +12,7 @@ import numpy as np
 
 from dcrad.errors import ConfigError
 from dcrad.meshing.patches import Patches
+from dcrad.transport.emitters import sources_power
 
 __all__ = [
     "MAX_SUBSCENES", "MIN_PATCHES_PER_SUBSCENE", "SUBSCENES_PER_WORKER", "WORK_PER_PATCH_W", "check_subscenes",
@@ -57,9 +58,11 @@ def expected_work(patches: Patches) -> float:
     it shoots, and a cell shoots its lamps' light and what that light reflects there: on
     the 8x8 office at the default accuracy each cell's iterate CPU seconds were 0.028-0.033 s
     per W of its own lamps at k = 4 and k = 8 (bench/RESULTS.md).  Light that crosses
-    in from neighbours is about what crosses out, so the cell's own lamps predict its work.
+    in from neighbours is about what crosses out, so the cell's own lamps predict its work (its
+    luminaires' and point lights' too).
     """
-    return float(patches.emitted_power.sum()) + WORK_PER_PATCH_W * len(patches)
+    own = float(patches.emitted_power.sum()) + float(sources_power(patches.sources).sum())
+    return own + WORK_PER_PATCH_W * len(patches)
 
 
 def placement(work: Sequence[float], workers: int) -> list[int]:

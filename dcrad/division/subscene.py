@@ -32,9 +32,11 @@ from dcrad.meshing.patches import Patches
 from dcrad.solving.energy import Ledger
 from dcrad.solving.solver import Solver
 from dcrad.solving.stiffness import Stiffness
+from dcrad.transport.emitters import sources_power
 from dcrad.transport.rays import Tracer
 from dcrad.transport.shoot import RayBatch, patch_rays, per_ray_power, ray_lattice, ray_offset
 from dcrad.transport.shooters import spatial_order
+from dcrad.transport.source_wire import sources_from_table, sources_table
 
 __all__ = [
     "BARRIER_GOAL", "BarrierPlan", "FORWARD_CAP", "Subscene", "SubsceneHandle", "SubsceneState",
@@ -405,6 +407,11 @@ class Subscene(Solver):
         goal = max(self.local_target, share * self.local_residual()) if self.local_target > 0 else 0.0
         cap = FORWARD_CAP * self.config.batch_rays
         deadline = time.perf_counter() + plan.time_left if plan is not None and plan.time_left > 0 else None
+        if self.direct.sources_left and not self.interrupted:
+            # its light sources that are not patches, shot once, first (a subscene shoots its direct
+            # light: the exact gather reads only this cell's patches, and its light crosses boundaries)
+            while self.direct.sources_left:
+                rays += self.direct.shoot_source(self.direct.sources_left.pop(0))
         for i in range(n):
             if deadline is not None and i > 0 and time.perf_counter() >= deadline:
                 break  # the job's time limit, inside the barrier
@@ -456,7 +463,10 @@ class Subscene(Solver):
 
     def state(self) -> SubsceneState:
         held = self._held()
-        return SubsceneState(self.cell, self.ledger.copy(), self.stats.shots, self.stats.rays,
+        led = self.ledger.copy()
+        waiting = sources_power(self.direct.sources_left)  # booked as emitted, not shot yet: held as unshot
+        led.unshot, led.unshot_abs = led.unshot + waiting, led.unshot_abs + np.abs(waiting)
+        return SubsceneState(self.cell, led, self.stats.shots, self.stats.rays,
                              sum(len(h) for h in held), sum(h.nbytes() for h in held),
                              self.patches.total_area, self.tallies.copy(),
                              self.twins_delivered, self.twin_blocks, self.stats.batches,
@@ -489,10 +499,11 @@ def boundaries_from_array(table: np.ndarray) -> list[Boundary]:
 
 
 def subscene_arrays(sub: Subscene) -> dict:
-    """What a worker needs to rebuild a subscene: its patches and boundaries."""
+    """What a worker needs to rebuild a subscene: its patches, their light sources that are not
+    patches (source_wire.py) and its boundaries."""
     p = sub.patches
-    return p.table_arrays() | {"radiosity": p.radiosity, "unshot": p.unshot,
-                               "boundaries": boundaries_to_array(sub.boundaries)}
+    return p.table_arrays() | sources_table(p.sources) | {"radiosity": p.radiosity, "unshot": p.unshot,
+                                                          "boundaries": boundaries_to_array(sub.boundaries)}
 
 
 #: the buffers a subscene holds between barriers, saved in checkpoints as NAME_array
@@ -520,6 +531,8 @@ def checkpoint_arrays(sub: Subscene) -> dict:
         # the error estimate's half-solution difference: it also splits each shot's power
         "noise_diff": sub.noise.diff, "noise_unshot": sub.noise.unshot,
         "noise_sums": np.array([sub.noise._sums.d2, sub.noise._sums.b2, sub.noise._sums.r2]),
+        # its light sources still to shoot (the last ones of its list: they are shot in order)
+        "sources_left": np.array([len(sub.direct.sources_left)], np.int64),
         **held,
     }
 
@@ -528,6 +541,7 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
                    arrays: dict, local_target: float = 0.0) -> Subscene:
     """Rebuild a subscene from ``subscene_arrays`` (plus ``checkpoint_arrays`` to resume)."""
     p = Patches.from_table(arrays, names, radiosity=arrays["radiosity"].copy(), unshot=arrays["unshot"].copy())
+    p.sources = sources_from_table(arrays)
     sub = Subscene(cell, p, boundaries_from_array(arrays["boundaries"]), config, power_per_ray, mode, local_target)
     if "ledger" in arrays:  # resume from a checkpoint
         sub.ledger = Ledger.from_array(arrays["ledger"])
@@ -538,6 +552,8 @@ def build_subscene(cell: int, config: SolverConfig, power_per_ray: float, mode: 
         sub.stats.trace_seconds = float(arrays["trace_seconds"][0])
         sub.back_by_obj = np.array(arrays["back_by_obj"], np.float64)
         sub.rng.bit_generator.state = json.loads(bytes(arrays["rng_state"]).decode())
+        left = int(np.asarray(arrays.get("sources_left", [0])).ravel()[0])
+        sub.direct.sources_left = list(p.sources[len(p.sources) - left:]) if left else []
         if "noise_diff" in arrays:
             sub.noise.diff = np.array(arrays["noise_diff"], np.float64)
             sub.noise.unshot = np.array(arrays["noise_unshot"], np.float64)

@@ -24,7 +24,7 @@ from dcrad.division.placement import SUBSCENES_PER_WORKER, subscene_limit
 from dcrad.solving.accuracy import by_accuracy
 from dcrad.transport.direct import MAX_ANALYTIC_RECEIVERS
 
-__all__ = ["Strategy", "local", "on_workers", "gathers", "shares_possible", "shares_sources", "AUTO_DIVIDE_PATCHES",
+__all__ = ["Strategy", "local", "on_workers", "gathers", "shares_possible", "AUTO_DIVIDE_PATCHES",
            "SHARE_PATCHES", "SUBSCENES_PER_WORKER"]
 
 #: unknowns below which `dcrad solve` runs in one process by default: two local workers pay for
@@ -54,13 +54,6 @@ def shares_possible(config: SolverConfig, receivers: int) -> bool:
     The lights must also make exact-form-factor polygons: the direct shares find out (the
     job divides space instead)."""
     return by_accuracy(config) and config.direct and 0 < receivers <= MAX_ANALYTIC_RECEIVERS
-
-
-def shares_sources(config: SolverConfig, receivers: int) -> bool:
-    """A shared run can take a job lit by light sources that are not surfaces (luminaires, glTF
-    lights; a divided run cannot carry them): accuracy mode with the direct light gathered and at
-    most MAX_ANALYTIC_RECEIVERS receivers (none is fine: the sources' light is all absorbed)."""
-    return by_accuracy(config) and config.direct and receivers <= MAX_ANALYTIC_RECEIVERS
 
 
 def local(units: int, cpus: int, gathered: bool = False) -> Strategy:
@@ -95,16 +88,13 @@ def local(units: int, cpus: int, gathered: bool = False) -> Strategy:
 
 
 def on_workers(config: SolverConfig, receivers: int, patches: int, live: int, subscenes: int = 0,
-               resumed: bool = False, exact_lights: bool = True, sources: bool = False) -> Strategy:
+               resumed: bool = False, exact_lights: bool = True) -> Strategy:
     """The coordinator's choice for a job on ``live`` workers: shared when the run takes the final
     plan and no subscenes were asked for (``subscenes`` 0) and it is not resumed from a divided
     run's checkpoints; divided otherwise, into the subscenes asked for or SUBSCENES_PER_WORKER a
     worker (at most ``placement.subscene_limit`` of ``patches``).  ``exact_lights`` False: a shared
-    run's direct shares found the lights make no exact-form-factor polygons, and the job divides.
-    ``sources``: the scene has light sources that are not surfaces, which only a shared run carries
-    (``shares_sources``)."""
-    shared = shares_sources(config, receivers) if sources else shares_possible(config, receivers)
-    if not subscenes and not resumed and exact_lights and shared:
+    run's direct shares found the lights make no exact-form-factor polygons, and the job divides."""
+    if not subscenes and not resumed and exact_lights and shares_possible(config, receivers):
         return Strategy("shared", live, 1, Choice("strategy", (
             f"shared by the {live} worker(s), each holding the whole scene: accuracy mode with the direct light "
             f"gathered exactly ({receivers} receiving patches, at most {MAX_ANALYTIC_RECEIVERS}) takes the final "

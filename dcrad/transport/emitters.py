@@ -19,8 +19,8 @@ the exact direct irradiance it puts on any point.  What asks them:
 Their exact direct light is the run's direct light, as the emitting patches' gathered light is: in
 accuracy mode a run follows the final plan with them (``DirectPhase.sources_only``; not when a
 source had to be shot).  A new kind of emitter implements the three methods below and touches
-nothing else.  They run in one process and shared by workers (source_wire.py carries them), not
-divided yet (``check_single``).
+nothing else.  They run on every path: in one process, shared by workers and divided (a source
+belongs to the subscene holding it, which shoots it first; source_wire.py carries them to workers).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from dcrad.estimate.noise import half_mask
 from dcrad.transport.sampling import DEGREE2_RULE, lattice
 from dcrad.transport.shoot import RayBatch
 
-__all__ = ["Emitter", "PointSource", "sources_power", "check_single", "sphere_directions", "patch_irradiance",
+__all__ = ["Emitter", "PointSource", "sources_power", "sphere_directions", "patch_irradiance",
            "half_lattice", "half_weights"]
 
 
@@ -234,10 +234,3 @@ def patch_irradiance(source: Emitter, corners: np.ndarray, normals: np.ndarray, 
 def sources_power(sources) -> np.ndarray:
     """(3,) W all of ``sources`` emit."""
     return sum((np.asarray(s.power(), np.float64) for s in sources), np.zeros(3))
-
-
-def check_single(sources, how: str) -> None:
-    """ConfigError when a run that cannot carry sources yet (``how``: divided, shared) is asked to."""
-    if sources:
-        raise ConfigError(f"light sources that are not surfaces ({', '.join(s.name for s in sources)}) run in one "
-                          f"process or shared by workers, not {how}")
