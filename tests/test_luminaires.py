@@ -12,6 +12,7 @@ refused in one line naming its file.
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import subprocess
@@ -23,7 +24,7 @@ import pytest
 
 import dcrad
 from dcrad.errors import ConfigError
-from dcrad.outputs.photometry import workplane
+from dcrad.outputs.photometry import EFFICACY, workplane
 from dcrad.transport.luminaires import Distribution, Luminaire, load_schedule, read_photometric
 from dcrad.transport.rays import Tracer
 from scenes.objwriter import ObjWriter
@@ -596,3 +597,111 @@ def test_a_luminaire_job_runs_shared_on_workers_as_in_process(tmp_path):
     assert report["shared"]["workers"] == 2 and report["luminaires"]["types"][0]["count"] == 2
     # pi I0 lm each (a cosine downlight of I0 = 1000 cd, its table interpolated), the second at half
     assert report["luminaires"]["lumens"] == pytest.approx(1.5 * math.pi * 1000.0, rel=1e-4)
+
+
+def test_a_gltf_ies_light_is_the_scheduled_luminaire_of_its_profile(tmp_path):
+    """glTF EXT_lights_ies: a profile at a node rotated so that its local -Z points down and its X
+    along the room's +Z lights the floor as the same file placed by a schedule (aim down, C0 along
+    +Z: rotation -90 degrees from the default +X) does, point for point; the profile given as a
+    data URI is the file's; ``color`` tints it per channel (its lumens scaled by Y(color)),
+    ``multiplier`` scales it; a node's profile with neither uri nor bufferView is one error naming
+    it; and the upload takes the profile file with the scene."""
+    from test_punctual import box_gltf
+
+    from coordinator.client import scene_paths
+    from dcrad.errors import SceneFormatError
+
+    g = np.arange(0.0, 180.1, 5.0)
+    c = np.arange(0.0, 360.1, 30.0)
+    ies(tmp_path / "asym.ies", g, c, table(lambda gg, cc: np.maximum(np.cos(np.radians(gg)), 0) *
+                                           (300 + 200 * np.cos(np.radians(cc))), c, g))
+    # -90 deg about X takes local -Z to -Y (down); then -90 deg about Y takes local X to +Z
+    qx = [math.sin(-math.pi / 4), 0.0, 0.0, math.cos(-math.pi / 4)]
+    qy = [0.0, math.sin(-math.pi / 4), 0.0, math.cos(-math.pi / 4)]
+    lamp = {"name": "lamp", "translation": [1.5, 3.0, 2.5], "rotation": qy,
+            "children": [], "extensions": {}}
+    inner = {"name": "lamp_profile", "rotation": qx, "extensions": {"EXT_lights_ies": {"light": 0}}}
+
+    def gltf(name, profile, more=None):
+        nodes = [lamp | {"children": [7]}, inner | {"extensions": {"EXT_lights_ies": {"light": 0, **(more or {})}}}]
+        ext = {"extensionsUsed": ["EXT_lights_ies"], "extensions": {"EXT_lights_ies": {"lights": [profile]}}}
+        return box_gltf(tmp_path / name, light_nodes=nodes, rho=0.0, extra=ext)
+
+    by_file = gltf("file.gltf", {"uri": "asym.ies", "name": "asym"})
+    raw = (tmp_path / "asym.ies").read_bytes()
+    by_uri = gltf("uri.gltf", {"uri": "data:application/x-ies-lm-63;base64," + base64.b64encode(raw).decode()})
+    tinted = gltf("tint.gltf", {"uri": "asym.ies"}, {"color": [1.0, 0.5, 0.0], "multiplier": 2.0})
+    schedule(tmp_path / "lights.json", {"file": "asym.ies", "position": [1.5, 3.0, 2.5], "rotation": -90.0})
+    scene = dcrad.load(by_file)
+    (lum,) = scene.sources
+    assert isinstance(lum, Luminaire) and lum.name == "glTF IES light 'asym'"
+    (ref,) = load_schedule(tmp_path / "lights.json", scene)
+    np.testing.assert_allclose(lum.aim, [0.0, -1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(lum.c0, ref.c0, atol=1e-12)
+    tracer = Tracer(scene.vertices[scene.faces])
+    pts = np.random.default_rng(3).uniform([0.1, 1e-4, 0.1], [3.9, 1e-4, 3.9], (400, 3))
+    up = np.tile([0.0, 1.0, 0.0], (400, 1))
+    want = ref.irradiance(pts, up, tracer, 1e-6)
+    np.testing.assert_allclose(lum.irradiance(pts, up, tracer, 1e-6), want, rtol=1e-9)
+    (same,) = dcrad.load(by_uri).sources
+    np.testing.assert_array_equal(same.irradiance(pts, up, tracer, 1e-6), lum.irradiance(pts, up, tracer, 1e-6))
+    (tint,) = dcrad.load(tinted).sources
+    np.testing.assert_allclose(tint.irradiance(pts, up, tracer, 1e-6), want * [2.0, 1.0, 0.0], rtol=1e-9)
+    assert tint.lumens == pytest.approx(2.0 * lum.lumens * (0.2126 + 0.5 * 0.7152), rel=1e-12)
+    assert "asym.ies" in scene_paths(by_file)
+    with pytest.raises(SceneFormatError, match=r"bad\.gltf: EXT_lights_ies light 0 \('lamp_profile', node "
+                                               r"'lamp_profile'\): its profile has neither a 'uri' nor a 'bufferView'"):
+        dcrad.load(gltf("bad.gltf", {"name": ""}))
+
+
+def test_a_luminous_opening_lights_its_near_field_as_the_closed_form(tmp_path):
+    """A Lambertian luminaire (I = I0 cos gamma) whose file gives a flat opening is a uniform-luminance
+    opening, L = I0 / A: under a 0.6 m square the irradiance on a parallel plane is pi L times the
+    point-to-parallel-rectangle form factor, and on the axis of a 0.5 m disc I0 / (h^2 + a^2); both
+    within 0.5% from one opening size away to far beyond, where the photometric centre alone (the
+    point the file would be without its opening) is 33% high at one size.  Its rays start all over
+    the opening and still carry exactly its power."""
+    from dcrad.io.scene import load_scene
+
+    i0, s = 1000.0, 0.6
+    cosine = [i0 * np.cos(np.radians(GAMMA_HALF))]
+    ies(tmp_path / "square.ies", GAMMA_HALF, [0.0], cosine, opening=(s, s, 0.0))
+    ies(tmp_path / "disc.ies", GAMMA_HALF, [0.0], cosine, opening=(-0.5, -0.5, 0.0))
+    ies(tmp_path / "point.ies", GAMMA_HALF, [0.0], cosine)
+    path = box(tmp_path, size=(40.0, 30.0, 40.0))
+    scene = load_scene(path)
+    tracer = Tracer(scene.vertices[scene.faces])
+    top = 20.0
+
+    def lum(file):
+        schedule(tmp_path / f"{file}.json", {"file": f"{file}.ies", "position": [20.0, top, 20.0]})
+        (one,) = load_schedule(tmp_path / f"{file}.json", scene)
+        return one
+
+    square, disc, point = lum("square"), lum("disc"), lum("point")
+    assert square.opening == ("rectangle", s, s) and disc.opening == ("disc", 0.5, 0.5) and point.opening[0] == "point"
+
+    def corner(a, b, h):  # the form factor from a point to an a x b rectangle above it, one corner over it
+        A, B = a / h, b / h
+        return (A / math.hypot(1, A) * math.atan(B / math.hypot(1, A))
+                + B / math.hypot(1, B) * math.atan(A / math.hypot(1, B))) / (2 * math.pi)
+
+    def lux(source, pts):
+        return EFFICACY * source.irradiance(pts, np.tile([0.0, 1.0, 0.0], (len(pts), 1)), tracer, 1e-6)[:, 0]
+
+    def under_square(x, z, h):
+        return math.pi * i0 / s ** 2 * sum(corner(a, b, h) for a in (s / 2 - x, s / 2 + x)
+                                           for b in (s / 2 - z, s / 2 + z))
+
+    for h in (0.6, 1.2, 3.0, 9.0, 15.0):
+        pts = np.array([[20.0, top - h, 20.0], [20.1, top - h, 19.95]])
+        np.testing.assert_allclose(lux(square, pts), [under_square(0.0, 0.0, h), under_square(0.1, -0.05, h)],
+                                   rtol=5e-3)
+        assert lux(disc, pts[:1])[0] == pytest.approx(i0 / (h * h + 0.25 ** 2), rel=5e-3)
+    at_one_size = np.array([[20.0, top - s, 20.0]])
+    assert lux(point, at_one_size)[0] > 1.3 * under_square(0.0, 0.0, s)
+    rays = square.rays(4000, np.random.default_rng(2))
+    off = rays.origins - square.position
+    assert np.abs(off[:, 1]).max() < 1e-12 and np.abs(off[:, [0, 2]]).max() <= s / 2 + 1e-12
+    assert np.abs(off[:, [0, 2]]).max() > 0.4 * s
+    np.testing.assert_allclose(rays.power.sum(axis=0), square.power(), rtol=1e-12)

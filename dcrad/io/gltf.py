@@ -173,13 +173,19 @@ def gltf_structure(header: dict, path: str, glb_bin: int | None = None) -> None:
                                    f"{acc['bufferView']}, which has {views[acc['bufferView']]}")
 
 
+#: the glTF extension placing IES light profiles (read by transport.luminaires.read_gltf_ies)
+IES_EXTENSION = "EXT_lights_ies"
+
+
 def gltf_files(header: dict, path: str) -> list[str]:
-    """The files (buffers, images) a glTF header refers to by URI, as written; each must lie
-    inside the scene's folder (data: URIs are inline, not files)."""
+    """The files (buffers, images, EXT_lights_ies profiles) a glTF header refers to by URI, as
+    written; each must lie inside the scene's folder (data: URIs are inline, not files)."""
     folder = os.path.dirname(os.path.abspath(path))
     refs = []
-    for kind in ("buffers", "images"):
-        items = header.get(kind, [])
+    ies = header.get("extensions", {}).get(IES_EXTENSION) if isinstance(header.get("extensions"), dict) else None
+    listed = {"buffers": header.get("buffers", []), "images": header.get("images", []),
+              f"{IES_EXTENSION} lights": ies.get("lights", []) if isinstance(ies, dict) else []}
+    for kind, items in listed.items():
         for i, item in enumerate(items if isinstance(items, list) else []):
             uri = item.get("uri") if isinstance(item, dict) else None
             if isinstance(uri, str) and not uri.startswith("data:"):
@@ -492,6 +498,11 @@ def load_gltf(path: str, warnings: list, scale: float):
     from dcrad.transport import punctual  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module, not the photometry
 
     lights = punctual.read_gltf(header, path, scale, _gltf_nodes(header, path), warnings)
+    if IES_EXTENSION in (header.get("extensionsUsed") or []) or IES_EXTENSION in (header.get("extensions") or {}):
+        from dcrad.transport import luminaires  # noqa: PLC0415  lazy, as punctual
+
+        lights += luminaires.read_gltf_ies(header, path, scale, _gltf_nodes(header, path), warnings,
+                                           lambda view: _gltf_blob(path, header, None, {"bufferView": view}))
     cat = lambda a, shape, dt: np.concatenate(a).astype(dt) if a else np.zeros(shape, dt)  # noqa: E731
     extras = {"two_sided": cat(sides, (0,), bool), "textured": list(dict.fromkeys(textured)), "maps": tex_maps,
               "lights": lights}

@@ -33,6 +33,7 @@ import numpy as np
 from dcrad.errors import SceneFormatError, SceneValueError
 from dcrad.outputs.photometry import EFFICACY, Y_WEIGHTS
 from dcrad.transport.emitters import PointSource, half_lattice, half_weights
+from dcrad.transport.gltf_lights import extension_lights, placements, unique_name
 from dcrad.transport.shoot import RayBatch
 
 __all__ = ["PunctualLight", "SpotLight", "read_gltf", "sources", "report_section", "summary_lines", "EXTENSION"]
@@ -172,22 +173,10 @@ def read_gltf(header: dict, path: str, scale: float, nodes: Iterable, warnings: 
     ``nodes``: (index, node, world 4x4) of the default scene's nodes, depth-first.  Directional lights,
     ``range`` and dark lights leave warnings (module doc); bad lights raise a SceneError naming
     ``path`` and the light."""
-    ext = header.get("extensions")
-    ext = ext.get(EXTENSION) if isinstance(ext, dict) else None
-    lights = ext.get("lights", []) if isinstance(ext, dict) else []
-    if not isinstance(lights, list):
-        raise SceneFormatError(f"{path}: {EXTENSION}'s 'lights' is not a list")
+    lights = extension_lights(header, path, EXTENSION)
     out: list[dict] = []
     names: set[str] = set()
-    for i, node, world in nodes:
-        ref = node.get("extensions", {}).get(EXTENSION) if isinstance(node.get("extensions"), dict) else None
-        if ref is None:
-            continue
-        node_name = node.get("name") or f"node {i}"
-        index = ref.get("light") if isinstance(ref, dict) else None
-        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(lights):
-            raise SceneFormatError(f"{path}: node '{node_name}' refers to {EXTENSION} light {index!r}, but the file "
-                                   f"has {len(lights)} light(s)")
+    for node_name, index, _, world in placements(nodes, path, EXTENSION, len(lights)):
         light = lights[index]
         if not isinstance(light, dict):
             raise SceneFormatError(f"{path}: {EXTENSION} light {index} is not a JSON object")
@@ -240,12 +229,7 @@ def read_gltf(header: dict, path: str, scale: float, nodes: Iterable, warnings: 
         if candela == 0 or not float(Y_WEIGHTS @ rgb) > 0:
             warnings.append(f"{where} emits nothing (intensity {candela:g} cd, color {rgb.tolist()}); left out")
             continue
-        name = f"glTF {kind} light '{label}'"
-        k = 2
-        while name in names:  # a light placed by several nodes: one source each
-            name = f"glTF {kind} light '{label}' #{k}"
-            k += 1
-        names.add(name)
+        name = unique_name(f"glTF {kind} light '{label}'", names)
         placed = {"name": label, "node": node_name, "type": kind, "light": index,
                   "position": (position / scale).tolist(), "intensity_cd": candela, "color": rgb.tolist()}
         if kind == "spot":
@@ -258,14 +242,21 @@ def read_gltf(header: dict, path: str, scale: float, nodes: Iterable, warnings: 
     return out
 
 
-def sources(lights: list[dict], rotation: np.ndarray) -> tuple[PunctualLight, ...]:
-    """The ``read_gltf`` lights as light sources in the solver's frame (``rotation``: the scene's
-    up axis, file -> solver)."""
+def sources(lights: list[dict], rotation: np.ndarray) -> tuple:
+    """The ``read_gltf`` lights (and ``luminaires.read_gltf_ies``' profiles) as light sources in the
+    solver's frame (``rotation``: the scene's up axis, file -> solver)."""
     rotation = np.asarray(rotation, np.float64)
-    out: list[PunctualLight] = []
+    out: list = []
     for lt in lights:
-        common = {"name": lt["name"], "candela": lt["candela"], "color": lt["color"], "placed": lt["placed"]}
         at = rotation @ lt["position"]
+        if lt["kind"] == "ies":  # EXT_lights_ies: a luminaire of the profile (luminaires.read_gltf_ies)
+            from dcrad.transport.luminaires import Luminaire  # noqa: PLC0415  lazy: it imports photometric reading
+
+            out.append(Luminaire(position=at, name=lt["name"], photometric=lt["photometric"],
+                                 aim=rotation @ lt["aim"], c0=rotation @ lt["c0"], multiplier=lt["multiplier"],
+                                 color=lt["color"], placed=lt["placed"]))
+            continue
+        common = {"name": lt["name"], "candela": lt["candela"], "color": lt["color"], "placed": lt["placed"]}
         if lt["kind"] == "spot":
             out.append(SpotLight(at, axis=rotation @ lt["axis"], inner=lt["inner"], outer=lt["outer"], **common))
         else:
