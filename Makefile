@@ -51,6 +51,9 @@ BENCH := \
 	"bench_bias.py cornell" \
 	"bench_stop.py office --accuracy 0.02" \
 	"bench_setup.py --scene office:rows=4,cols=4 --patch-size 0.25 --reps 1" \
+	"bench_luminaires.py --accuracy 0.05 --no-reference" \
+	"bench_sigterm.py office:rows=3,cols=3 --workers 0 --delays 3" \
+	"bench_code.py" \
 	"bench_coordinator_memory.py -- $(BIN)/dcrad solve office --workers 2 --accuracy 0.1 --out out/bench-coordinator-memory"
 bench: install
 	@for f in bench/bench_*.py; do case ' $(BENCH) ' in *'"'$$(basename $$f)* ) ;; \

@@ -10,8 +10,10 @@ is the file's candela table, turned into the scene by its aim and rotation:
   symmetric tables (photompy's ``expanded()`` mirrors by adding 90/180 degrees, right only for
   evenly spaced planes, and leaves no plane at 360 to interpolate across), the ballast factor it
   ignores, TILT=INCLUDE applied at the installed tilt, and files of LM-63-1986/1991 (no version
-  line photompy accepts).  Type A and B photometry, TILT=<file>, IES files of 90-270 lateral
-  symmetry and EULUMDAT files of several lamp sets are refused by name, not guessed at.
+  line photompy accepts).  Type B photometry (floodlights) is read onto a fine type C web in the
+  frame Radiance's ies2rad reads it in (``type_b_web``; checked against ies2rad + rtrace).  Type A
+  photometry, TILT=<file>, IES files of 90-270 lateral symmetry and EULUMDAT files of several lamp
+  sets are refused by name, not guessed at.
 * **The distribution** (``Distribution``): candela over (gamma, C), gamma the vertical angle from
   the photometric nadir, C the horizontal angle, expanded to the whole sphere and interpolated
   bilinearly in (gamma, C); zero outside the measured vertical angles (a 0-90 table emits nothing
@@ -229,6 +231,38 @@ def _ies_text(path: str, raw: bytes) -> tuple[str, str]:
     return "IESNA:LM-63-1995\n" + text, "LM-63-1986"
 
 
+#: the type C web a type B table is read onto: (gamma step, C step) in degrees
+TYPE_B_WEB = (0.5, 1.0)
+
+
+def type_b_web(horiz: np.ndarray, vert: np.ndarray, table: np.ndarray) -> Distribution:
+    """A type B table (candela ``table`` (H, V) over horizontal angles ``horiz`` and vertical angles
+    ``vert``, degrees, the beam centre at H = V = 0) as a type C Distribution on a TYPE_B_WEB grid.
+    The luminaire's frame is type C's (nadir = the beam centre, C0, C90 = C0 x nadir), and a
+    direction e reads V = atan2(e.C0, e.nadir) and H = atan2(-e.C90, e.nadir), as Radiance's ies2rad
+    and source.cal read type B (``srcB_vert``, ``srcB_horiz``; an asymmetric file lights a plane as
+    `ies2rad` + `rtrace` do to 1e-3, tests/test_luminaires.py); bilinear in (H, V), 0 outside the
+    table (the back hemisphere)."""
+    gamma = np.arange(0.0, 180.0 + 1e-9, TYPE_B_WEB[0])
+    c = np.arange(0.0, 360.0 + 1e-9, TYPE_B_WEB[1])
+    cc, gg = np.meshgrid(np.radians(c), np.radians(gamma), indexing="ij")
+    x, y, z = np.sin(gg) * np.cos(cc), np.sin(gg) * np.sin(cc), np.cos(gg)
+    v, h = np.degrees(np.arctan2(x, z)), np.degrees(np.arctan2(-y, z))
+    hi = np.clip(np.searchsorted(horiz, h, side="right") - 1, 0, max(len(horiz) - 2, 0))
+    vi = np.clip(np.searchsorted(vert, v, side="right") - 1, 0, max(len(vert) - 2, 0))
+    if len(horiz) > 1:
+        t = np.clip((h - horiz[hi]) / (horiz[hi + 1] - horiz[hi]), 0.0, 1.0)
+    else:  # one plane: the same in every horizontal direction
+        hi, t = np.zeros_like(hi), np.zeros_like(h)
+    u = np.clip((v - vert[vi]) / (vert[vi + 1] - vert[vi]), 0.0, 1.0)
+    h1 = np.minimum(hi + 1, len(horiz) - 1)
+    cd = ((1 - t) * ((1 - u) * table[hi, vi] + u * table[hi, vi + 1])
+          + t * ((1 - u) * table[h1, vi] + u * table[h1, vi + 1]))
+    eps = 1e-9
+    inside = (v >= vert[0] - eps) & (v <= vert[-1] + eps) & (h >= horiz[0] - eps) & (h <= horiz[-1] + eps)
+    return Distribution(c, gamma, np.where(inside, cd, 0.0))
+
+
 def _read_ies(path: str, raw: bytes) -> Photometric:
     import photompy  # noqa: PLC0415  lazy: only a run with luminaires needs it (and matplotlib, which it imports)
     from photompy.exceptions import IESDataError  # noqa: PLC0415
@@ -244,9 +278,10 @@ def _read_ies(path: str, raw: bytes) -> Photometric:
                               f"symmetry are not read)") from None
         raise ConfigError(f"{path}: malformed or truncated IES LM-63 file ({type(exc).__name__}: {exc})") from None
     hdr, phot = ies.header, ies.photometry
-    if hdr.photometric_type != PhotometricType.C:
-        raise ConfigError(f"{path}: type {hdr.photometric_type.name} photometry is not supported (only type C, "
-                          f"the nadir-based C-gamma system of interior and most area luminaires)")
+    if hdr.photometric_type not in (PhotometricType.C, PhotometricType.B):
+        raise ConfigError(f"{path}: type {hdr.photometric_type.name} photometry is not supported (type C, the "
+                          f"nadir-based C-gamma system of interior and most area luminaires, and type B, "
+                          f"floodlights' horizontal polar axis)")
     tilt = None
     if isinstance(hdr.tilt, TiltData):
         if not (np.isfinite(hdr.tilt.factors).all() and (hdr.tilt.factors >= 0).all()
@@ -264,6 +299,25 @@ def _read_ies(path: str, raw: bytes) -> Photometric:
         factor *= hdr.future_use
     if not (math.isfinite(factor) and factor > 0):
         raise ConfigError(f"{path}: ballast factor {factor:g} must be a finite number > 0")
+    if hdr.photometric_type == PhotometricType.B:
+        try:
+            web = phot.expanded()  # photompy mirrors a symmetric type B table (V 0-90, H 0-90 or one plane)
+        except (NotImplementedError, ValueError) as exc:
+            raise ConfigError(f"{path}: type B table not read ({exc})") from None
+        vert, horiz = np.asarray(web.thetas, np.float64), np.asarray(web.phis, np.float64)
+        table = np.asarray(web.values, np.float64) * factor
+        _check_table(path, vert + 90.0, table)  # its values (its angles -90 to 90: checked below)
+        if not (len(vert) >= 2 and (np.diff(vert) > 0).all() and (np.diff(horiz) > 0).all()
+                and vert[0] >= -90 and vert[-1] <= 90 and horiz[0] >= -90 and horiz[-1] <= 90):
+            raise ConfigError(f"{path}: type B angles must increase within -90 to 90 degrees")
+        opening = hdr.luminous_opening
+        return Photometric(path, f"IES {version}, type B (horizontal polar axis), on a type C web of "
+                                 f"{TYPE_B_WEB[0]:g} x {TYPE_B_WEB[1]:g} degrees" + (", TILT=INCLUDE" if tilt else ""),
+                           type_b_web(horiz, vert, table),
+                           hdr.lumens_per_lamp * hdr.num_lamps if hdr.lumens_per_lamp > 0 else None,
+                           hdr.input_watts if hdr.input_watts > 0 else None,
+                           (float(opening.width), float(opening.length), float(opening.height)),
+                           opening.shape.name.lower(), tilt)
     gamma, cd = np.asarray(phot.thetas, np.float64), np.asarray(phot.values, np.float64) * factor
     _check_table(path, gamma, cd)
     symmetry = {LampSymmetry.AXIAL: "axial", LampSymmetry.QUAD: "quadrant", LampSymmetry.HALF: "c0-c180",
