@@ -370,15 +370,7 @@ class JobManager:
             books.choices.add("resumed", f"resumed from barrier {backend.resume.barrier} after a coordinator "
                                          f"restart (checkpoints on disk)")
         books.divided["coordinator_rss_mb"] = dict(mem.phases)
-        settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
-                                  spec.solver.workplane)
-        made = self._views(views)
-        job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
-                                spec.preview_height or 480, extra={"error_curve": self.curve_dict(job)},
-                                views=made, painter=self._painter(job, made))
-        mem("outputs")
-        if shown.barrier != run.barriers:  # the status page shows the result's own preview (not rendered twice)
-            self._final_preview(job, run.barriers)
+        self._write_results(job, scene, size, books, views, {}, shown, run.barriers, mem)
         job.residual = run.ledger.residual()
         job.state = "cancelled" if run.stopped_by == "stopped" else "done"
 
@@ -454,18 +446,25 @@ class JobManager:
         live.close()  # its Embree scene goes before the outputs; the final state's preview is theirs
         job.curve.measure(patches.radiosity, patches.area, self._measured_label(run, config), len(phases))
         shared["coordinator_rss_mb"] = dict(mem.phases)
+        self._write_results(job, scene, size, books, views, {"shared": shared}, live, len(phases), mem)
+        job.state = "cancelled" if run.stats.stopped_by == "stopped" else "done"
+        return True
+
+    def _write_results(self, job: Job, scene, size: float, books, views: Future, extra: dict, shown, barrier: int,
+                       mem: MemoryLog) -> None:
+        """The job's outputs and report (``finish_run``, as `dcrad solve` writes them) with its error
+        curve and ``extra`` sections; the status page then shows the result's own preview, rendered
+        only when the live one (``shown``) is of an earlier ``barrier``."""
+        spec = job.spec
         settings = scene_settings(scene, size, spec.solver.scale or 1.0, spec.solver.two_sided,
                                   spec.solver.workplane)
         made = self._views(views)
         job.report = finish_run(job.root / "out", scene, books, settings, spec.preview_width or 640,
-                                spec.preview_height or 480, extra={"error_curve": self.curve_dict(job),
-                                                                   "shared": shared},
+                                spec.preview_height or 480, extra={"error_curve": self.curve_dict(job), **extra},
                                 views=made, painter=self._painter(job, made))
         mem("outputs")
-        if live.barrier != len(phases):  # the status page shows the result's own preview (not rendered twice)
-            self._final_preview(job, len(phases))
-        job.state = "cancelled" if run.stats.stopped_by == "stopped" else "done"
-        return True
+        if shown.barrier != barrier:
+            self._final_preview(job, barrier)
 
     def _views_ahead(self, job: Job, scene, patches) -> Future:
         """The outputs' views (``pipeline.output_views(ahead=True)``: cameras, both views' primary hits,

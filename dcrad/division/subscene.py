@@ -417,8 +417,7 @@ class Subscene(Solver):
             # under --max-rays at most SOURCE_BUDGET_SHARE of this barrier's share, coarser if need be
             # (all their power is still shot): at the run's density the 2x3 office's 12 luminaires
             # took 2.5M rays of a 1M budget in one go
-            counts = [max(math.ceil(float(np.abs(s.power()).sum()) / self.power_per_ray), self.config.min_rays, 2)
-                      for s in self.direct.sources_left]
+            counts = [self.direct.source_rays(s) for s in self.direct.sources_left]
             allowed = SOURCE_BUDGET_SHARE * plan.rays_left if plan is not None and plan.rays_left else math.inf
             f = min(1.0, allowed / max(sum(counts), 1))
             for count in counts:

@@ -87,13 +87,18 @@ class DirectPhase:
             rays += self.gather_source(source) if s.config.direct else self.shoot_source(source)
         return rays
 
+    def source_rays(self, source) -> int:
+        """Rays ``source`` takes shot at the run's power per ray (at least the shots' floor)."""
+        s = self.solver
+        return max(int(math.ceil(float(np.abs(source.power()).sum()) / s.power_per_ray)), s.config.min_rays, 2)
+
     def shoot_source(self, source, n: int | None = None) -> int:
         """Shoot ``source``'s whole power with ``n`` rays (None: at the run's power per ray), in
         batches of at most ``batch_rays``; returns the rays traced."""
         self.sources_shot = True
         s = self.solver
         if n is None:
-            n = max(int(math.ceil(float(np.abs(source.power()).sum()) / s.power_per_ray)), s.config.min_rays, 2)
+            n = self.source_rays(source)
         rays = 0
         for lo in range(0, n, s.config.batch_rays):
             m = min(s.config.batch_rays, n - lo)
@@ -181,10 +186,8 @@ class DirectPhase:
             plan = None
             s.choices.add("direct", "no final plan: a light source that is not a patch (emitters.py) was shot, "
                                        "not gathered, and the final gather cannot tell its direct light apart")
-        if plan is not None and p.glazing is not None and p.glazing.mask.any():
-            plan = None  # final.read_hits reads the first surface a ray meets, a pane too
-            s.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
-                                       "see through yet (the shooting and the direct gather do)")
+        if plan is not None and self.glass_refuses_plan():
+            plan = None
         if plan is not None:
             shadow = plan.shadow_rays
             if cfg.max_rays:
@@ -371,8 +374,17 @@ class DirectPhase:
             s.choices.add("direct", f"no final plan: {receivers} receiving patches, above the "
                                     f"{MAX_ANALYTIC_RECEIVERS} a final gather takes (direct.py)")
             return
-        if p.glazing is not None and p.glazing.mask.any():
-            s.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
-                                    "see through yet (the shooting and the direct gather do)")
+        if self.glass_refuses_plan():
             return
         self.adopt(plan)
+
+    def glass_refuses_plan(self) -> bool:
+        """True (and the report's line) when the scene has glass: final.read_hits reads the first
+        surface a ray meets, a pane too, so the final gather cannot follow the light through it."""
+        s = self.solver
+        glazing = s.patches.glazing
+        if glazing is None or not glazing.mask.any():
+            return False
+        s.choices.add("direct", "no final plan: the scene has glass, which the final gather's rays do not "
+                                "see through yet (the shooting and the direct gather do)")
+        return True

@@ -36,7 +36,7 @@ from dcrad.estimate.noise import half_mask
 from dcrad.transport.sampling import DEGREE2_RULE, lattice
 from dcrad.transport.shoot import RayBatch
 
-__all__ = ["Emitter", "PointSource", "sources_power", "sphere_directions", "patch_irradiance",
+__all__ = ["Emitter", "PointSource", "sources_power", "sphere_directions", "patch_irradiance", "visibility",
            "half_lattice", "half_weights"]
 
 
@@ -188,15 +188,22 @@ class PointSource:
         out = np.zeros((len(points), 3))
         if not len(lit):
             return out
-        start = points[lit] + offset * toward[lit]
-        if getattr(tracer, "glazing", None) is not None:  # through glass: tau(theta) of every pane crossed
-            through = tracer.transmittance(start, toward[lit], r[lit] - 2.0 * offset)
-            out[lit] = self.intensity_at(-toward[lit]) * (cos[lit] / r[lit] ** 2)[:, None] * through
+        seen = visibility(tracer, points[lit] + offset * toward[lit], toward[lit], r[lit] - 2.0 * offset)
+        if seen.shape[1] == 3:  # through glass: tau(theta) of every pane crossed
+            out[lit] = self.intensity_at(-toward[lit]) * (cos[lit] / r[lit] ** 2)[:, None] * seen
             return out
-        seen = ~tracer.occluded(start, toward[lit], r[lit] - 2.0 * offset)
-        lit = lit[seen]
+        lit = lit[seen[:, 0] > 0]  # opaque: the intensity of the points that see it only
         out[lit] = self.intensity_at(-toward[lit]) * (cos[lit] / r[lit] ** 2)[:, None]
         return out
+
+
+def visibility(tracer, start: np.ndarray, toward: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """The share of a source's light that gets from ``start`` along unit ``toward`` over ``length``
+    (one shadow ray each): (k,3), the panes' tau(theta) (optics.py), where the scene has glass;
+    else (k,1), 1 where nothing is in the way and 0 where something is."""
+    if getattr(tracer, "glazing", None) is not None:
+        return tracer.transmittance(start, toward, length)
+    return (~tracer.occluded(start, toward, length)).astype(np.float64)[:, None]
 
 
 #: patches whose irradiance ``patch_irradiance`` evaluates at once (three points and a shadow ray each)

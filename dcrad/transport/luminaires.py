@@ -46,7 +46,7 @@ import numpy as np
 from dcrad.errors import ConfigError
 from dcrad.estimate.noise import half_mask
 from dcrad.outputs.photometry import EFFICACY, Y_WEIGHTS
-from dcrad.transport.emitters import PointSource, half_weights
+from dcrad.transport.emitters import PointSource, half_weights, visibility
 from dcrad.transport.gltf_lights import extension_lights, placements, unique_name
 from dcrad.transport.rays import Tracer
 from dcrad.transport.sampling import lattice
@@ -114,14 +114,7 @@ class Distribution:
         """(m,) candela at vertical angles ``gamma_deg`` and horizontal angles ``c_deg`` (any
         value: taken modulo 360), bilinear in (gamma, C); 0 outside the measured vertical angles."""
         g = np.asarray(gamma_deg, np.float64)
-        c = np.mod(np.asarray(c_deg, np.float64), 360.0)
-        gi = np.clip(np.searchsorted(self.gamma, g, side="right") - 1, 0, len(self.gamma) - 2)
-        ci = np.clip(np.searchsorted(self.c, c, side="right") - 1, 0, len(self.c) - 2)
-        t = np.clip((g - self.gamma[gi]) / (self.gamma[gi + 1] - self.gamma[gi]), 0.0, 1.0)
-        u = np.clip((c - self.c[ci]) / (self.c[ci + 1] - self.c[ci]), 0.0, 1.0)
-        v = self.cd
-        out = ((1 - u) * ((1 - t) * v[ci, gi] + t * v[ci, gi + 1])
-               + u * ((1 - t) * v[ci + 1, gi] + t * v[ci + 1, gi + 1]))
+        out = bilinear(self.c, self.gamma, self.cd, np.mod(np.asarray(c_deg, np.float64), 360.0), g)
         inside = (g >= self.gamma[0] - _ANGLE_EPS) & (g <= self.gamma[-1] + _ANGLE_EPS)
         return np.where(inside, out, 0.0)
 
@@ -163,6 +156,20 @@ class Distribution:
         c = np.radians(self.c[ci] + u[:, 1] * (self.c[ci + 1] - self.c[ci]))
         ratio = self.at(np.degrees(gamma), np.degrees(c)) * omega.reshape(-1)[cell] / flat[cell]
         return gamma, c, ratio
+
+
+def bilinear(rows: np.ndarray, cols: np.ndarray, table: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``table`` (R, C) over increasing ``rows`` and ``cols`` interpolated bilinearly at (``r``, ``c``),
+    clamped to the edges; one row (R = 1): the same along ``rows``."""
+    ri = np.clip(np.searchsorted(rows, r, side="right") - 1, 0, max(len(rows) - 2, 0))
+    ci = np.clip(np.searchsorted(cols, c, side="right") - 1, 0, len(cols) - 2)
+    if len(rows) > 1:
+        u, r1 = np.clip((r - rows[ri]) / (rows[ri + 1] - rows[ri]), 0.0, 1.0), ri + 1
+    else:
+        u, r1 = np.zeros(np.shape(r)), ri
+    t = np.clip((c - cols[ci]) / (cols[ci + 1] - cols[ci]), 0.0, 1.0)
+    return ((1 - u) * ((1 - t) * table[ri, ci] + t * table[ri, ci + 1])
+            + u * ((1 - t) * table[r1, ci] + t * table[r1, ci + 1]))
 
 
 # -- photometric files ----------------------------------------------------------------------------
@@ -248,16 +255,7 @@ def type_b_web(horiz: np.ndarray, vert: np.ndarray, table: np.ndarray) -> Distri
     cc, gg = np.meshgrid(np.radians(c), np.radians(gamma), indexing="ij")
     x, y, z = np.sin(gg) * np.cos(cc), np.sin(gg) * np.sin(cc), np.cos(gg)
     v, h = np.degrees(np.arctan2(x, z)), np.degrees(np.arctan2(-y, z))
-    hi = np.clip(np.searchsorted(horiz, h, side="right") - 1, 0, max(len(horiz) - 2, 0))
-    vi = np.clip(np.searchsorted(vert, v, side="right") - 1, 0, max(len(vert) - 2, 0))
-    if len(horiz) > 1:
-        t = np.clip((h - horiz[hi]) / (horiz[hi + 1] - horiz[hi]), 0.0, 1.0)
-    else:  # one plane: the same in every horizontal direction
-        hi, t = np.zeros_like(hi), np.zeros_like(h)
-    u = np.clip((v - vert[vi]) / (vert[vi + 1] - vert[vi]), 0.0, 1.0)
-    h1 = np.minimum(hi + 1, len(horiz) - 1)
-    cd = ((1 - t) * ((1 - u) * table[hi, vi] + u * table[hi, vi + 1])
-          + t * ((1 - u) * table[h1, vi] + u * table[h1, vi + 1]))
+    cd = bilinear(horiz, vert, table, h, v)  # one horizontal plane: the same every way
     eps = 1e-9
     inside = (v >= vert[0] - eps) & (v <= vert[-1] + eps) & (h >= horiz[0] - eps) & (h <= horiz[-1] + eps)
     return Distribution(c, gamma, np.where(inside, cd, 0.0))
@@ -565,25 +563,25 @@ class Luminaire(PointSource):
         the near field of a flat opening (``NEAR_FIELD``), the mean over an n x n grid of points on
         the opening of I(direction) cos / d^2 instead, times the centre's visibility (its shadow ray,
         or the panes' transmittance): the opening's extent, not its penumbra."""
-        out = super().irradiance(points, normals, tracer, offset)
         shape, ln, w = self.opening
         if shape == "point":
-            return out
+            return super().irradiance(points, normals, tracer, offset)
         pts, nrm = np.asarray(points, np.float64), np.asarray(normals, np.float64)
         r = np.linalg.norm(self.position - pts, axis=1)
         size = max(ln, w)
-        done = np.zeros(len(pts), bool)
-        for sizes, n in NEAR_FIELD:
-            rows = np.flatnonzero((r <= sizes * size) & ~done & (r > offset))
-            done[rows] = True
+        tier = np.full(len(pts), -1)  # the NEAR_FIELD tier of each point (-1: the centre alone)
+        for k, (sizes, _) in reversed(list(enumerate(NEAR_FIELD))):
+            tier[(r <= sizes * size) & (r > offset)] = k
+        out = np.zeros((len(pts), 3))
+        far = np.flatnonzero(tier < 0)
+        if len(far):
+            out[far] = super().irradiance(pts[far], nrm[far], tracer, offset)
+        for k, (_, n) in enumerate(NEAR_FIELD):
+            rows = np.flatnonzero(tier == k)
             if not len(rows):
                 continue
             toward = (self.position - pts[rows]) / r[rows, None]
-            start = pts[rows] + offset * toward
-            if getattr(tracer, "glazing", None) is not None:
-                seen = tracer.transmittance(start, toward, r[rows] - 2.0 * offset)
-            else:
-                seen = (~tracer.occluded(start, toward, r[rows] - 2.0 * offset)).astype(np.float64)
+            seen = visibility(tracer, pts[rows] + offset * toward, toward, r[rows] - 2.0 * offset)
             got = np.zeros((len(rows), 3))
             grid = self.opening_grid(n)
             for g in grid:
@@ -592,7 +590,7 @@ class Luminaire(PointSource):
                 cos = np.einsum("ij,ij->i", d, nrm[rows]) / dist
                 lit = cos > 0
                 got[lit] += self.intensity_at(-d[lit] / dist[lit, None]) * (cos[lit] / dist[lit] ** 2)[:, None]
-            out[rows] = got / len(grid) * np.reshape(seen, (-1, 1))
+            out[rows] = got / len(grid) * seen
         return out
 
     def watts_per_sr(self, dirs: np.ndarray) -> np.ndarray:
