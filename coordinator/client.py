@@ -26,7 +26,15 @@ from dcrad.io.gltf import gltf_files, gltf_header
 from dcrad.io.objfile import inside_folder, mtllib_files, mtllib_name, read_mtl
 from dcrad.outputs.progress import error_text, progress_fraction
 from dcrad.pipeline import resolve_scene
-from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
+from dcrad.settings import (
+    add_divide_flags,
+    add_flags,
+    add_scene_flags,
+    daylight_from_args,
+    divide_from_args,
+    from_args,
+    scene_values,
+)
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.v1 import dcrad_pb2_grpc as pb_grpc
 from dcrad.wire import FileSink, path_chunks, safe_relpath
@@ -365,6 +373,8 @@ def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
 @_handled
 def cmd_submit(args) -> int:
     address = resolve_address(args.coordinator)
+    if daylight_from_args(args) is not None:  # read first: a bad daylight flag is named as such
+        raise ConfigError("--sky runs in `dcrad solve` in one process for now; the service does not carry it yet")
     solver = from_args(SolverConfig, args).as_dict() | scene_values(args)
     # subscenes 0 travels as 0: the coordinator makes one per registered worker
     divide = divide_from_args(args, max(args.subscenes, 1)).as_dict() | {"subscenes": args.subscenes}

@@ -30,7 +30,15 @@ from dcrad.config import BOUNDARY_MODES, DivideConfig, SolverConfig
 from dcrad.division.placement import SUBSCENES_PER_WORKER
 from dcrad.errors import DcradError
 from dcrad.outputs.progress import error_text
-from dcrad.settings import add_divide_flags, add_flags, add_scene_flags, divide_from_args, from_args, scene_values
+from dcrad.settings import (
+    add_divide_flags,
+    add_flags,
+    add_scene_flags,
+    daylight_from_args,
+    divide_from_args,
+    from_args,
+    scene_values,
+)
 from dcrad.solving.accuracy import resolve
 
 __all__ = ["main"]
@@ -125,6 +133,11 @@ def cmd_solve(args) -> int:
     from dcrad.pipeline import resolve_scene, solve_to
 
     check_image_size(args.width, args.height)
+    daylight = daylight_from_args(args)  # read (and refused) before the scene loads
+    if daylight is not None and (args.planes or args.subscenes > 1 or (args.workers or 0) > 0):
+        raise ConfigError("--sky runs in one process for now: drop --workers, --subscenes and --planes "
+                          "(the sky lights the whole model through every opening; divided and shared runs "
+                          "do not carry it yet)")
     choice, loaded = None, None
     # caught from the start: a stop while the scene loads and meshes ends the command at once
     stop = _Interrupt(before="while the scene loaded and meshed")
@@ -165,6 +178,7 @@ def cmd_solve(args) -> int:
                               loaded=(loaded[0], loaded[1], loaded[3]) if loaded is not None else None,
                               # a mesh handed on is lit by the luminaires already (``_auto_workers``)
                               luminaires_path=args.luminaires if loaded is None or loaded[3] is None else None,
+                              daylight=daylight if loaded is None or loaded[3] is None else None,
                               on_meshed=stop.running)
     finally:
         _restore(previous)
@@ -184,9 +198,8 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
     written and loaded twice, 0.5-1.2 s more than ``--workers 0``)."""
     from dcrad.io.scene import load_scene
     from dcrad.meshing.mesh import estimate_elements
-    from dcrad.pipeline import default_patch_size, patch_limit, resolve_scene
+    from dcrad.pipeline import default_patch_size, light_sources, patch_limit, resolve_scene
     from dcrad.solving.strategy import gathers, local
-    from dcrad.transport.luminaires import load_schedule
 
     if args.planes or args.subscenes > 1:
         return 0, Choice("workers", "solved in this process (--workers 0 by default with --planes or "
@@ -207,12 +220,17 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
         # the unknowns, not the patches: a run's rays follow them (clusters share one B), and
         # only a run in this process settles its clusters (passes.settle); the mesh is handed on
         # the luminaires light it before meshing, so that the refinement follows their light too
-        extra = tuple(load_schedule(args.luminaires, scene, args.scale)) if args.luminaires is not None else ()
+        extra = tuple(light_sources(args.luminaires, daylight_from_args(args), args.scale)(scene)) \
+            if args.luminaires is not None or args.sky is not None else ()
         patches = scene.patches(size, adapt=not (args.patch_size and args.patch_size > 0), sources=extra)
         n = patches.units
     strategy = local(n, os.cpu_count() or 1, gathers(config, n))
     workers, choice = strategy.workers, strategy.why
-    if scene.tau is not None and workers > 0:
+    if args.sky is not None and workers > 0:
+        # the sky and sun run in one process for now (transport/sky.py)
+        workers, choice = 0, Choice("workers", "solved in this process: daylight (--sky) runs in one process "
+                                               "for now")
+    elif scene.tau is not None and workers > 0:
         # glass runs in one process for now (optics.check_single)
         workers, choice = 0, Choice("workers", "solved in this process: the scene's glass (ideal specular "
                                                "transmitters, optics.py) runs in one process for now")

@@ -26,11 +26,11 @@ from dcrad.io import export
 from dcrad.io.scene import NO_EMITTERS, load_scene
 from dcrad.meshing import mesh
 from dcrad.meshing.patches import Patches
-from dcrad.outputs import photometry, render
+from dcrad.outputs import daylight, photometry, render
 from dcrad.outputs.report import TIMINGS, RunBooks, run_report, write_json
 from dcrad.runs import Divided, RunHooks, Single
 from dcrad.solving.solver import Stats
-from dcrad.transport import luminaires, optics, punctual
+from dcrad.transport import luminaires, optics, punctual, sky
 from dcrad.transport.rays import Tracer
 
 __all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "resolve_scene",
@@ -77,6 +77,19 @@ def resolve_scene(spec: str, workdir: Path) -> Path:
         return scenes.write_builtin(name, workdir, **kwargs)
     except TypeError as exc:
         raise SceneError(f"built-in scene '{name}': {exc}") from None
+
+
+def light_sources(luminaires_path=None, daylight=None, scale: float = 1.0):
+    """scene -> the light sources a run adds to the file's own: a luminaire schedule's
+    (luminaires.load_schedule) and the sky's and sun's (sky.daylight_sources); None without either."""
+    if luminaires_path is None and daylight is None:
+        return None
+
+    def sources(scene) -> tuple:
+        out = tuple(luminaires.load_schedule(luminaires_path, scene, scale)) if luminaires_path is not None else ()
+        return out + (sky.daylight_sources(daylight, scene) if daylight is not None else ())
+
+    return sources
 
 
 def prepare(path, patch_size: float | None = None, scale: float = 1.0, up: str | None = None,
@@ -321,6 +334,11 @@ def write_pictures(out: Path, patches: Patches, views: OutputViews, lux: np.ndar
         render.draw_marks(picture, render.marks_in_view(fc_camera, np.array(at), fc_tracer), fc_camera.width)
     export.write_png(out / "illuminance.png", picture)
     written["illuminance_png"] = "illuminance.png"
+    df = daylight.picture_scale(patches)
+    if df is not None:  # the same view in daylight factors (percent of the sky's horizontal illuminance)
+        export.write_png(out / "daylight_factor.png",
+                         photometry.false_colour(fc[..., 0] * df, fc[..., 1], fc[..., 2], top * df, unit="DF %"))
+        written["daylight_factor_png"] = "daylight_factor.png"
     return {"written": written, "view": view, "legend_max_lux": top}
 
 
@@ -361,6 +379,11 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
              "patch_L_cd_m2": photometry.luminance_cd(patches.radiosity)}
     if grid is not None:
         extra |= {"workplane_points": scene.to_input_frame(grid["points"]), "workplane_lux": grid["lux"]}
+    sky = daylight.sky_of(patches)
+    if sky is not None:
+        extra["patch_daylight_factor"] = daylight.factor(lux, sky)
+        if grid is not None:
+            extra["workplane_daylight_factor"] = daylight.factor(grid["lux"], sky)
     # zlib lets go of the GIL: the compressed npz (5 s at 1.27M patches) is written beside the rest
     npz = ThreadPoolExecutor(max_workers=1, thread_name_prefix="npz")
     npz_done = npz.submit(export.write_radiosity_npz, out / "radiosity.npz", patches, len(scene.faces), extra)
@@ -399,6 +422,9 @@ def write_outputs(out: Path, scene, patches: Patches, width: int = 640, height: 
         lums = luminaires.report_section(patches, grid, tracer)
         if lums is not None:
             sections["luminaires"] = lums
+        lit = daylight.section(patches, surfaces, grid)
+        if lit is not None:
+            sections["daylight"] = lit
     return written
 
 
@@ -497,6 +523,7 @@ def solve_to(
     loaded: tuple | None = None,
     luminaires_path: str | os.PathLike | None = None,
     on_meshed=None,
+    daylight=None,
 ) -> dict:
     """Load, solve and write everything to ``out``; return the report dict.
 
@@ -504,6 +531,7 @@ def solve_to(
     process; one subscene (the default) uses the plain solver: no partition, no twins.
     ``up``, ``two_sided``, ``workplane``: scene settings (see scene_settings).  ``loaded``: see prepare.
     ``luminaires_path``: a luminaire schedule (luminaires.load_schedule) lighting the scene too.
+    ``daylight``: a sky.DaylightSpec (``--sky``) lighting it from outside.
     ``on_meshed()``: told once the scene is loaded and meshed, as the solve starts (the CLI's stop
     handler: before it, a stop ends the command; after it, the solve stops and writes its results).
     """
@@ -512,9 +540,7 @@ def solve_to(
     t0 = time.perf_counter()
     phases: dict = {}
     scene, patches, size = prepare(path, patch_size, scale, up, two_sided, timings=phases, loaded=loaded,
-                                   workplane=workplane,
-                                   sources=None if luminaires_path is None else
-                                   lambda sc: luminaires.load_schedule(luminaires_path, sc, scale))
+                                   workplane=workplane, sources=light_sources(luminaires_path, daylight, scale))
     t_load = time.perf_counter() - t0 + (loaded[1] if loaded is not None else 0.0)
     if on_meshed is not None:
         on_meshed()

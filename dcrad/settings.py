@@ -21,13 +21,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import math
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from dcrad.config import BOUNDARY_MODES, DivideConfig
 from dcrad.errors import ConfigError
 
-__all__ = ["add_flags", "add_scene_flags", "scene_values", "add_divide_flags", "divide_from_args", "from_args",
+__all__ = ["add_flags", "add_scene_flags", "add_daylight_flags", "daylight_from_args", "scene_values",
+           "add_divide_flags", "divide_from_args", "from_args",
            "to_argv", "to_pb", "from_pb", "missing_on_wire", "flag_name"]
 
 if TYPE_CHECKING:
@@ -105,6 +107,75 @@ def add_scene_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--luminaires", default=None, metavar="SCHEDULE.json",
                         help="luminaires from photometric files (.ies, .ldt) placed by a JSON schedule, in the "
                              "scene file's coordinates (see docs/guide.md, Luminaires); in this process only")
+    add_daylight_flags(parser)
+
+
+def add_daylight_flags(parser: argparse.ArgumentParser) -> None:
+    """``--sky`` and its companions (transport/sky.py; ``daylight_from_args`` reads them back)."""
+    g = parser.add_argument_group("daylight (see docs/guide.md, Daylight)")
+    g.add_argument("--sky", default=None, metavar="NAME",
+                   help="light the model from outside: uniform, cie-overcast, clear (with sun) or iso:1 .. iso:15 "
+                        "(the CIE standard general skies); rays that leave the model read the sky or the ground")
+    g.add_argument("--sky-illuminance", type=float, default=None, metavar="LUX",
+                   help="the sky's horizontal diffuse illuminance, unobstructed (default 10000 lx): the daylight "
+                        "factor's denominator")
+    g.add_argument("--sun-altitude", type=float, default=None, metavar="DEG", help="the sun's altitude, degrees")
+    g.add_argument("--sun-azimuth", type=float, default=None, metavar="DEG",
+                   help="the sun's compass azimuth, degrees from north clockwise (east 90); north is the file's "
+                        "+Y for a Z-up file, -Z for a Y-up one")
+    g.add_argument("--site", default=None, metavar="LAT,LON",
+                   help="the site's latitude and longitude, degrees (north and east positive), with --time")
+    g.add_argument("--time", default=None, metavar="ISO8601",
+                   help="local date and time with its UTC offset, e.g. 2026-06-21T12:00+01:00, with --site")
+    g.add_argument("--sun-illuminance", type=float, default=None, metavar="LUX",
+                   help="the sun's direct normal illuminance (default 80000 lx with --sky clear, else no sun)")
+    g.add_argument("--ground-reflectance", type=float, default=None,
+                   help="reflectance of the ground outside, lit by the sky and sun (default 0.2)")
+
+
+#: the daylight flags that mean nothing without --sky
+DAYLIGHT_COMPANIONS = ("sky_illuminance", "sun_altitude", "sun_azimuth", "site", "time", "sun_illuminance",
+                       "ground_reflectance")
+
+
+def daylight_from_args(args: argparse.Namespace):
+    """The ``DaylightSpec`` (transport/sky.py) of the flags, or None without ``--sky``; ConfigError
+    for a companion flag without ``--sky`` or a value that cannot be read."""
+    from dcrad.transport.sky import DaylightSpec  # noqa: PLC0415  (the settings module stays light)
+
+    sky = getattr(args, "sky", None)
+    given = [name for name in DAYLIGHT_COMPANIONS if getattr(args, name, None) is not None]
+    if sky is None:
+        if given:
+            raise ConfigError(f"{flag_name(given[0])} applies to a daylit run only: give --sky too")
+        return None
+    site = None
+    if args.site is not None:
+        try:
+            lat, lon = (float(x) for x in str(args.site).split(","))
+        except ValueError:
+            raise ConfigError(f"--site {args.site!r}: expected LAT,LON in degrees, e.g. 51.5,-0.12") from None
+        if not (math.isfinite(lat) and math.isfinite(lon)):
+            raise ConfigError(f"--site {args.site!r}: not finite")
+        site = (lat, lon)
+    when = None
+    if args.time is not None:
+        try:
+            when = datetime.datetime.fromisoformat(str(args.time))
+        except ValueError:
+            raise ConfigError(f"--time {args.time!r}: expected an ISO 8601 date and time with its UTC offset, "
+                              f"e.g. 2026-06-21T12:00+01:00") from None
+        if when.tzinfo is None:
+            raise ConfigError(f"--time {args.time!r}: give its UTC offset, e.g. 2026-06-21T12:00+01:00")
+    kw: dict[str, Any] = {"sky": sky, "sun_altitude": args.sun_altitude, "sun_azimuth": args.sun_azimuth,
+                          "site": site, "time": when, "sun_lux": args.sun_illuminance}
+    if args.sky_illuminance is not None:
+        kw["diffuse_lux"] = float(args.sky_illuminance)
+    if args.ground_reflectance is not None:
+        kw["ground"] = float(args.ground_reflectance)
+    spec = DaylightSpec(**kw)
+    spec.check()
+    return spec
 
 
 def scene_values(args: argparse.Namespace) -> dict:

@@ -462,6 +462,8 @@ def direct_irradiance(patches, tracer: Tracer, corners: np.ndarray, normals: np.
     facing = np.repeat(normals, r, axis=0)
     offset = 2e-6 * patches.scale
     for source in sources:
+        if rays is not None and not getattr(source, "exact", True):
+            continue  # a coarse look asks where the light varies sharply: the sky's does not
         h = source.irradiance(at, facing, tracer, offset).reshape(k, r, 3)
         out += np.einsum("r,krc->kc", weights, h)
         traced += len(at)
@@ -806,12 +808,12 @@ def legend_scale(lux: np.ndarray, area: np.ndarray) -> float:
 
 
 def false_colour(value: np.ndarray, front: np.ndarray, back: np.ndarray, top: float,
-                 legend_width: int = 110, ticks: int = 6) -> np.ndarray:
+                 legend_width: int = 110, ticks: int = 6, unit: str = "lux") -> np.ndarray:
     """(H, W) lux, front-hit and back-hit coverage -> (H, W + legend_width, 3) uint8 sRGB image.
 
     Pixels: the colour map of value / top where surfaces face the camera, grey where a
     one-sided surface is seen from behind, black for nothing.  At the right a colour bar
-    (top at the top) with ``ticks`` labels in lux, drawn with OpenImageIO's text renderer.
+    (top at the top) with ``ticks`` labels in ``unit``, drawn with OpenImageIO's text renderer.
     """
     import OpenImageIO as oiio  # noqa: PLC0415  lazy: `dcrad jobs/watch` imports this module and must not load OpenImageIO
 
@@ -834,6 +836,6 @@ def false_colour(value: np.ndarray, front: np.ndarray, back: np.ndarray, top: fl
         oiio.ImageBufAlgo.fill(buf, (1.0, 1.0, 1.0), oiio.ROI(bar_x1, bar_x1 + 6, y, y + 1))
         label = f"{frac * top:.4g}"
         oiio.ImageBufAlgo.render_text(buf, bar_x1 + 9, y + size // 3, label, size, "", (1.0, 1.0, 1.0))
-    oiio.ImageBufAlgo.render_text(buf, w + 8, 14, "lux", size, "", (1.0, 1.0, 1.0))
+    oiio.ImageBufAlgo.render_text(buf, w + 8, 14, unit, size, "", (1.0, 1.0, 1.0))
     out = np.asarray(buf.get_pixels(oiio.FLOAT)).reshape(h, w + legend_width, 3)
     return tonemap(out, exposure=1.0)

@@ -83,6 +83,10 @@ class RunBooks:
         return self.ledger.residual()
 
     def warnings(self) -> list[str]:
+        if any(getattr(s, "outside", False) for s in self.patches.sources):
+            # daylight comes from outside the model: most of it meets the model's outside (one-sided
+            # interiors: back faces) or misses it, which these two warnings would read as mistakes
+            return []
         return flipped_normals(self.ledger, self.back_by_obj, self.patches.names) + escaped_light(self.ledger,
                                                                                                   self.patches)
 

@@ -49,6 +49,8 @@ GATHER_STOPPED = ("direct gather stopped before it finished (a stop request): no
 #: a tenth of it escapes), not where it lands
 SOURCE_LANDING_RAYS = 1 << 18
 #: fewest shadow rays per receiver of a direct gather coarsened to fit --max-rays: below about 16
+#: rays a half a receiver gathers a sampled source's light with (``gather_sampled``), at least and at most
+SAMPLED_MIN_RAYS, SAMPLED_MAX_RAYS = 8, 1 << 16
 #: the exact gather's own floor (its pilot, a ray a half per receiver-light pair) dominates (the
 #: office: 271k rays at 4, 276k at 8, 304k at 16, 611k at 32; Cornell 97k, 199k, 405k, 816k)
 MIN_BUDGET_SHADOW = 16
@@ -84,8 +86,52 @@ class DirectPhase:
             source = self.sources_left.pop(0)
             if float(np.abs(source.power()).sum()) <= 0:
                 continue
-            rays += self.gather_source(source) if s.config.direct else self.shoot_source(source)
+            if not s.config.direct:
+                rays += self.shoot_source(source)
+            elif getattr(source, "exact", True):
+                rays += self.gather_source(source)
+            else:  # its direct light has no exact gather (the sky: an integral over the openings a point sees)
+                rays += self.gather_sampled(source)
         return rays
+
+    def gather_sampled(self, source) -> int:
+        """The direct light of a source without an exact gather (the sky, ``patch_gather``), gathered
+        onto every receiver by rays from all over it, in two independent halves whose difference
+        is its noise (noise.py): a receiver of area A takes A E / (power per ray) rays, E the
+        irradiance of a plane that sees all of the source (``scale_irradiance``), which is the noise
+        its shot rays would leave at the run's density but spends no ray on the outside of the model
+        (a small roof opening: 98% of the sky's rays into the bounding box met the roof's outside).
+        What does not land is booked escaped; the final plan is not taken (its direct light is a
+        sampled estimate, which the final gather's books do not carry).  Returns the rays traced."""
+        s = self.solver
+        p = s.patches
+        power = np.asarray(source.power(), np.float64)
+        rows = np.flatnonzero((p.area > 0) & p.rho.any(axis=1))
+        if p.glazing is not None:  # a pane's own share of the sky (1 - tau) is not gathered: its Kd is small
+            rows = rows[~p.glazing.mask[rows]]
+        per_half = np.ceil(0.5 * source.scale_irradiance() * p.area[rows] / s.power_per_ray)
+        counts = np.clip(per_half, SAMPLED_MIN_RAYS, SAMPLED_MAX_RAYS).astype(np.int64)
+        if len(rows):
+            h_a, h_b = source.patch_gather(p.corners(rows), p.normal[rows], counts, s.tracer, ray_offset(p), s.rng)
+        else:  # nothing reflects (a black room): all of it is booked escaped
+            h_a = h_b = np.zeros((0, 3))
+        area = p.area[rows, None]
+        received, received_a = 0.5 * (h_a + h_b) * area, 0.5 * h_a * area
+        keep = np.flatnonzero(received.any(axis=1))
+        got = received[keep]
+        magnitude = np.abs(got)
+        landed = got.sum(axis=0)
+        tally = DirectTally(got, rows[keep], power - landed, np.zeros(3), np.zeros(len(s.back_by_obj)),
+                            np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
+                            (magnitude * p.rho[rows[keep]]).sum(axis=0), np.abs(power - landed), received_a[keep],
+                            int(2 * counts.sum()))
+        s.commit(None, tally, shot=power[None, :])
+        self.sources_shot = True
+        if len(rows):
+            s.choices.add("direct", f"{source.name}: its direct light gathered onto {len(rows):,} receivers with "
+                                    f"{int(2 * counts.sum()):,} rays ({int(counts.min())} to {int(counts.max())} a "
+                                    f"half a receiver), two independent halves: its noise is in the estimate")
+        return s.counted(1, int(2 * counts.sum()))
 
     def source_rays(self, source) -> int:
         """Rays ``source`` takes shot at the run's power per ray (at least the shots' floor)."""

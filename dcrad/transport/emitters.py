@@ -220,7 +220,8 @@ def patch_irradiance(source: Emitter, corners: np.ndarray, normals: np.ndarray, 
     r = len(DEGREE2_RULE)
     panes = None if glazing is None else np.asarray(glazing.mask, bool)
     position = getattr(source, "position", None)
-    if panes is not None and panes.any() and position is None:
+    direction = getattr(source, "direction", None)  # a parallel beam (the sun): one direction everywhere
+    if panes is not None and panes.any() and position is None and direction is None:
         raise ConfigError(f"{source.name}: a light source without a position cannot light glass yet")
     for lo in range(0, len(corners), PATCH_CHUNK):
         c = np.asarray(corners[lo:lo + PATCH_CHUNK], np.float64)
@@ -230,7 +231,8 @@ def patch_irradiance(source: Emitter, corners: np.ndarray, normals: np.ndarray, 
         if panes is not None:
             on = np.flatnonzero(np.repeat(panes[lo:lo + len(c)], r))
             if len(on):
-                d = np.asarray(position, np.float64) - points[on]
+                d = (np.asarray(position, np.float64) - points[on] if position is not None
+                     else np.repeat(np.asarray(direction, np.float64)[None, :], len(on), axis=0))
                 cos = np.abs(np.einsum("ij,ij->i", d, facing[on])) / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
                 rows = np.repeat(np.arange(lo, lo + len(c)), r)[on]
                 h[on] *= 1.0 - glazing.tau(rows, cos)

@@ -19,12 +19,13 @@ from dcrad.errors import ConfigError
 from dcrad.transport.emitters import PointSource
 from dcrad.transport.luminaires import Luminaire
 from dcrad.transport.punctual import PunctualLight, SpotLight
+from dcrad.transport.sky import Sky, Sun
 
 __all__ = ["KINDS", "sources_table", "sources_from_table"]
 
 #: the kinds of light source that travel, by the name the wire gives them
 KINDS: dict[str, Any] = {"point": PointSource, "luminaire": Luminaire, "gltf_point": PunctualLight,
-                          "gltf_spot": SpotLight}
+                          "gltf_spot": SpotLight, "sky": Sky, "sun": Sun}
 _NAMES = {cls: name for name, cls in KINDS.items()}
 
 

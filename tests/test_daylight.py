@@ -1,0 +1,427 @@
+"""Daylight (transport/sky.py) against closed forms and Radiance.
+
+The CIE 171:2006 daylight cases 5.9 to 5.12 built from their integrals (its tables carry errata at
+some edge points): a black 4 x 4 x 3 m room with a square roof opening under the uniform sky reads,
+at floor and wall points, 100 x the configuration factor of the opening (Lambert's contour formula,
+checked against a direct numerical integration); under the CIE overcast sky the integral of its
+luminance over the opening; a facade opening with an external ground of reflectance 0.3 the
+integral of sky and ground luminance through it, points that see only the ground included; a
+glazed opening the same integral times tau(theta) point by point.  The sky's normalisation and
+zenith luminance against the closed forms and Radiance's gensky; the sun's position against
+gensky's; the sun's patch on the floor against E_n sin(altitude).  A run's daylight factor per
+patch against the closed form, and bad input refused in one line.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dcrad.config import SolverConfig
+from dcrad.errors import ConfigError
+from dcrad.outputs.photometry import EFFICACY, direct_irradiance
+from dcrad.pipeline import prepare
+from dcrad.transport.lights import polygon_form_factor
+from dcrad.transport.optics import Glazing, pane_transmittance
+from dcrad.transport.rays import Tracer
+from dcrad.transport.sky import (
+    ISO_SKIES,
+    DaylightSpec,
+    Sky,
+    SkyModel,
+    Sun,
+    frame,
+    grid_directions,
+    sun_direction,
+    sun_position,
+)
+from scenes.objwriter import ObjWriter
+
+E_HZ = 10_000.0  # lux
+SIZE, HEIGHT = 4.0, 3.0
+UP = np.array([0.0, 1.0, 0.0])
+
+
+def roof_room(tmp_path, hole: float, rho: float = 0.0, stem: str = "roof"):
+    """A 4 x 4 x 3 m room (Y up, surfaces facing in) whose roof has a centred ``hole`` x ``hole`` m
+    opening (the whole roof open at 4): (path, the opening's corners)."""
+    w = ObjWriter()
+    w.material("wall", rho)
+    w.begin("room", "wall")
+    w.add_box((0, 0, 0), (SIZE, HEIGHT, SIZE), outward=False, skip_faces=("+y",))
+    a, b = (SIZE - hole) / 2, (SIZE + hole) / 2
+    if a > 0:
+        w.begin("roof", "wall")
+        for lo, hi in (((0, 0), (SIZE, a)), ((0, b), (SIZE, SIZE)), ((0, a), (a, b)), ((b, a), (SIZE, b))):
+            w.add_rect(1, HEIGHT, lo, hi, -1)
+    opening = np.array([[a, HEIGHT, a], [b, HEIGHT, a], [b, HEIGHT, b], [a, HEIGHT, b]], float)
+    return w.write(tmp_path, stem), opening
+
+
+def facade_room(tmp_path, rho: float = 0.0):
+    """The room with its roof closed and a 2 x 1 m opening in its -X wall, sill at 1 m, z 1..3:
+    (path, the opening's corners)."""
+    w = ObjWriter()
+    w.material("wall", rho)
+    w.begin("room", "wall")
+    w.add_box((0, 0, 0), (SIZE, HEIGHT, SIZE), outward=False, skip_faces=("-x",))
+    w.begin("facade", "wall")
+    pieces = (((0, 0), (1.0, SIZE)), ((2.0, 0), (HEIGHT, SIZE)), ((1.0, 0), (2.0, 1.0)), ((1.0, 3.0), (2.0, SIZE)))
+    for lo, hi in pieces:
+        w.add_rect(0, 0.0, lo, hi, 1)
+    opening = np.array([[0, 1, 1], [0, 2, 1], [0, 2, 3], [0, 1, 3]], float)
+    return w.write(tmp_path, "facade"), opening
+
+
+def opening_integral(points, normals, opening, radiance, tau=None, n: int = 1000):
+    """E = integral over the planar ``opening`` (4 corners, a parallelogram) of L(s) cos_1 cos_2 / r^2,
+    s the unit direction from the point to the opening (midpoint rule, n x n): W/m^2 per point."""
+    o, e1, e2 = opening[0], opening[1] - opening[0], opening[3] - opening[0]
+    nrm = np.cross(e1, e2)
+    area = np.linalg.norm(nrm)
+    nrm = nrm / area
+    g = (np.arange(n) + 0.5) / n
+    uu, vv = np.meshgrid(g, g)
+    q = o + uu.reshape(-1, 1) * e1 + vv.reshape(-1, 1) * e2
+    out = []
+    for x, nx in zip(points, normals):
+        d = q - x
+        r = np.linalg.norm(d, axis=1)
+        s = d / r[:, None]
+        c1 = np.maximum(s @ nx, 0.0)
+        c2 = np.abs(s @ nrm)
+        f = radiance(s) * c1 * c2 / r ** 2
+        if tau is not None:
+            f = f * tau(c2)
+        out.append(f.sum() * area / n ** 2)
+    return np.array(out)
+
+
+def black_points():
+    """Floor points (facing up) and wall points (on the -X wall, facing +X), centre to corners."""
+    floor = np.array([[2, 0, 2], [0.5, 0, 0.5], [1, 0, 3], [3.9, 0, 2], [0.1, 0, 0.1]], float)
+    wall = np.array([[0, 1.5, 2], [0, 2.9, 2], [0, 0.5, 0.5]], float)
+    normals = np.vstack([np.tile(UP, (len(floor), 1)), np.tile([1.0, 0, 0], (len(wall), 1))])
+    return np.vstack([floor, wall]), normals
+
+
+def sky_light(patches, model: SkyModel) -> Sky:
+    lo, hi = patches.bounds
+    return Sky(model, lo, hi)
+
+
+# -- the sky itself ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["uniform", "cie-overcast", "clear", *(f"iso:{t}" for t in ISO_SKIES)])
+def test_every_sky_puts_its_horizontal_illuminance_on_an_open_plane(name):
+    """The integral of L cos over the upper hemisphere, by a midpoint rule in (theta, phi) finer than
+    and independent of the sky's own table, is E_hz, for every sky (the sun at 40 degrees)."""
+    up, east, north = frame(np.eye(3))
+    sun = sun_direction(40.0, 135.0, up, east, north)
+    model = SkyModel(name, E_HZ, sun if name not in ("uniform", "cie-overcast") else None)
+    nt, nph = 1500, 3000
+    th = (np.arange(nt) + 0.5) * (math.pi / 2 / nt)
+    ph = (np.arange(nph) + 0.5) * (2 * math.pi / nph)
+    tt, pp = np.meshgrid(th, ph, indexing="ij")
+    s = np.stack([np.sin(tt) * np.cos(pp), np.cos(tt), np.sin(tt) * np.sin(pp)], -1).reshape(-1, 3)
+    w = (np.cos(tt) * np.sin(tt)).ravel() * (math.pi / 2 / nt) * (2 * math.pi / nph)
+    lux = float((model.radiance(s) * w).sum()) * EFFICACY
+    assert lux == pytest.approx(E_HZ, rel=2e-4)
+
+
+def test_the_overcast_sky_is_moon_and_spencer_s_and_radiance_s():
+    """CIE overcast: Lz = 9 E_hz / (7 pi), L(theta) = Lz (1 + 2 cos theta) / 3, the ground
+    rho_g E_hz / pi; Radiance's gensky -c -B gives the same zenith and ground radiance."""
+    model = SkyModel("cie-overcast", E_HZ, ground=0.2)
+    lz = 9 * E_HZ / (7 * math.pi)
+    assert model.zenith() == pytest.approx(lz, rel=1e-4)
+    s = np.array([[math.sin(0.7), math.cos(0.7), 0.0]])
+    assert model.radiance(s)[0] * EFFICACY == pytest.approx(lz * (1 + 2 * math.cos(0.7)) / 3, rel=1e-4)
+    assert model.ground_radiance() * EFFICACY == pytest.approx(0.2 * E_HZ / math.pi, rel=1e-12)
+    gensky = _radiance("gensky")
+    if gensky is None:
+        pytest.skip("Radiance (pyradiance) is not installed")
+    text = subprocess.run([gensky, "-ang", "45", "0", "-c", "-B", f"{E_HZ / EFFICACY:.6f}"], capture_output=True,
+                          text=True, check=True, env=_radiance_env()).stdout
+    args = text.split("skybright.cal")[1].split()
+    zenith, ground = float(args[3]), float(args[4])  # "0 3 2 Lz Lg": W/sr/m^2
+    assert zenith == pytest.approx(model.zenith() / EFFICACY, rel=1e-3)
+    assert ground == pytest.approx(model.ground_radiance(), rel=1e-3)
+
+
+def test_the_sun_s_position_is_radiance_s():
+    """The sun at a site, date and time (astral: NOAA's equations) against gensky's (its own
+    lower-precision formula) within half a degree; gensky's azimuth runs from south toward west."""
+    gensky = _radiance("gensky")
+    if gensky is None:
+        pytest.skip("Radiance (pyradiance) is not installed")
+    for lat, lon, when in ((51.5, 0.0, "2026-06-21T12:00"), (40.0, -74.0, "2026-12-21T15:30"),
+                           (-33.9, 151.2, "2026-03-20T09:15")):
+        t = dt.datetime.fromisoformat(when)
+        zone = round(lon / 15.0)
+        alt, az = sun_position(lat, lon, t.replace(tzinfo=dt.timezone(dt.timedelta(hours=zone))))
+        # gensky: -a latitude, -o longitude and -m meridian both west positive, the time standard time
+        text = subprocess.run([gensky, str(t.month), str(t.day), f"{t.hour + t.minute / 60:.4f}", "-a", str(lat),
+                               "-o", str(-lon), "-m", str(-15 * zone)], capture_output=True, text=True,
+                              check=True, env=_radiance_env()).stdout
+        r_alt, r_az = (float(x) for x in text.split("Solar altitude and azimuth:")[1].split()[:2])
+        assert alt == pytest.approx(r_alt, abs=0.5)
+        assert ((az - 180.0 - r_az + 180.0) % 360.0) - 180.0 == pytest.approx(0.0, abs=0.5)
+
+
+def test_north_and_east_follow_the_file_s_up_axis():
+    """A Z-up file: north +Y, east +X (Radiance's frame); a Y-up file: north -Z.  The internal frame
+    is Y-up, so the rotations of scene.UP_AXES take them there."""
+    from dcrad.io.scene import UP_AXES
+
+    for axis, north_in in (("z", [0, 1, 0]), ("y", [0, 0, -1])):
+        r = np.array(UP_AXES[axis], np.float64)
+        up, east, north = frame(r, axis)
+        np.testing.assert_allclose(up, r @ np.array([0, 0, 1.0] if axis == "z" else [0, 1.0, 0]), atol=1e-12)
+        np.testing.assert_allclose(east, r @ np.array([1.0, 0, 0]), atol=1e-12)
+        np.testing.assert_allclose(north, r @ np.array(north_in, np.float64), atol=1e-12)
+
+
+# -- the CIE 171:2006 daylight cases, from their integrals -------------------------------------------
+@pytest.mark.parametrize("hole", [1.0, 4.0])
+def test_a_roof_opening_under_the_uniform_sky_gives_100_x_its_configuration_factor(tmp_path, hole):
+    """CIE 5.9 / 5.10 (uniform sky): a black room's floor and wall points read E = E_hz F, F the
+    configuration factor of the opening (Lambert's contour formula), within 2% (this path: the work
+    plane's and black surfaces' direct light, photometry.direct_irradiance)."""
+    path, opening = roof_room(tmp_path, hole)
+    _, patches, _ = prepare(path, 0.5, up="y")
+    model = SkyModel("uniform", E_HZ)
+    patches.sources = (sky_light(patches, model),)
+    points, normals = black_points()
+    tracer = Tracer.mesh(patches)
+    got, _ = direct_irradiance(patches, tracer, points, normals)
+    loops = np.repeat(opening[None], len(points), 0)  # the opening seen from below: facing down
+    f = polygon_form_factor(points, normals, loops, np.tile(-UP, (len(points), 1)))
+    truth = opening_integral(points, normals, opening, lambda s: np.ones(len(s)))
+    np.testing.assert_allclose(f, truth / math.pi, rtol=1e-4)  # the contour formula, checked
+    df = 100 * got[:, 0] * EFFICACY / E_HZ
+    np.testing.assert_allclose(df, 100 * f, rtol=0.02)
+
+
+def test_a_roof_opening_under_the_cie_overcast_sky_reads_the_integral_of_its_luminance(tmp_path):
+    """CIE 5.11: the overcast sky's luminance integrated over the 1 x 1 m opening, within 2%."""
+    path, opening = roof_room(tmp_path, 1.0)
+    _, patches, _ = prepare(path, 0.5, up="y")
+    model = SkyModel("cie-overcast", E_HZ)
+    patches.sources = (sky_light(patches, model),)
+    points, normals = black_points()
+    got, _ = direct_irradiance(patches, Tracer.mesh(patches), points, normals)
+    truth = opening_integral(points, normals, opening, model.radiance)
+    np.testing.assert_allclose(got[:, 0], truth, rtol=0.02)
+
+
+def test_a_facade_opening_lets_in_the_sky_and_the_ground(tmp_path):
+    """CIE 5.12: a 2 x 1 m facade opening, the overcast sky and an external ground of rho 0.3:
+    floor, wall and ceiling points against the integral of sky and ground luminance through the
+    opening, within 2%; ceiling points see the ground alone (every line through the opening goes down)."""
+    path, opening = facade_room(tmp_path)
+    _, patches, _ = prepare(path, 0.5, up="y")
+    model = SkyModel("cie-overcast", E_HZ, ground=0.3)
+    patches.sources = (sky_light(patches, model),)
+    points = np.array([[1.0, 0, 2], [2.5, 0, 2], [1.5, 0, 0.5], [2, 1.5, 0], [4, 1.5, 2], [1.0, 3, 2], [2.5, 3, 1]],
+                      float)
+    normals = np.array([UP, UP, UP, [0, 0, 1.0], [-1.0, 0, 0], -UP, -UP])
+    got, _ = direct_irradiance(patches, Tracer.mesh(patches), points, normals)
+    truth = opening_integral(points, normals, opening, model.radiance)
+    ground = opening_integral(points, normals, opening, lambda s: np.where(s @ UP < 0, model.radiance(s), 0.0))
+    assert (ground[-2:] == truth[-2:]).all() and truth[-1] > 0  # the ceiling's points see only the ground
+    np.testing.assert_allclose(got[:, 0], truth, rtol=0.02)
+
+
+def test_a_glazed_opening_passes_tau_theta_point_by_point(tmp_path):
+    """The 1 x 1 m roof opening glazed (a pane of 6 mm clear float glass, tau_n 0.8788, index 1.52):
+    each point reads the integral of L cos cos / r^2 tau(theta) over it, within 2%."""
+    w = ObjWriter()
+    w.material("wall", 0.0)
+    w.material("glass", 0.0)
+    path, opening = roof_room(tmp_path, 1.0, stem="glazedroof")
+    # the pane: the opening's square itself, facing down
+    w.begin("pane", "glass")
+    w.add_rect(1, HEIGHT, (1.5, 1.5), (2.5, 2.5), -1)
+    pane_path = w.write(tmp_path, "pane")
+    merged = tmp_path / "merged.obj"
+    body = path.read_text().replace("mtllib glazedroof.mtl", "mtllib merged.mtl")
+    nv = sum(1 for line in body.splitlines() if line.startswith("v "))
+    pane = [line for line in pane_path.read_text().splitlines() if not line.startswith("mtllib")]
+    pane = [" ".join(["f", *(str(int(i) + nv) for i in line.split()[1:])]) if line.startswith("f ") else line
+            for line in pane]
+    merged.write_text(body + "\n" + "\n".join(pane) + "\n")
+    (tmp_path / "merged.mtl").write_text((tmp_path / "glazedroof.mtl").read_text() + "\nnewmtl glass\nKd 0 0 0\n")
+    _, patches, _ = prepare(merged, 0.5, up="y")
+    is_pane = np.array([patches.names[o].startswith("pane") for o in patches.obj])
+    n = len(patches)
+    tau_n = 0.8788
+    patches.glazing = Glazing(is_pane, np.where(is_pane[:, None], tau_n, 0.0) * np.ones((n, 3)), np.full(n, 1.52))
+    model = SkyModel("uniform", E_HZ)
+    patches.sources = (sky_light(patches, model),)
+    points, normals = black_points()
+    tracer = Tracer.mesh(patches)
+    tracer.glazing = patches.glazing
+    got, _ = direct_irradiance(patches, tracer, points, normals)
+
+    def tau(cos):
+        return pane_transmittance(cos, np.full((len(cos), 3), tau_n), np.full(len(cos), 1.52))[:, 0]
+
+    truth = opening_integral(points, normals, opening, model.radiance, tau=tau)
+    np.testing.assert_allclose(got[:, 0], truth, rtol=0.02)
+    bare = opening_integral(points, normals, opening, model.radiance)
+    assert (truth < 0.9 * bare).all()  # the pane's tau is what is being checked
+
+
+def test_the_sun_through_a_roof_opening_lights_its_patch_on_the_floor(tmp_path):
+    """The sun at 60 degrees through the 1 x 1 m opening: floor points in its patch read E_n sin 60
+    exactly (a shadow ray each), points outside it 0; the books of the sun's power close."""
+    path, _ = roof_room(tmp_path, 1.0)
+    _, patches, _ = prepare(path, 0.5, up="y")
+    up, east, north = frame(np.eye(3))
+    s = sun_direction(60.0, 180.0, up, east, north)  # from the south: toward -north
+    lo, hi = patches.bounds
+    sun = Sun(s, 80_000.0, lo, hi)
+    level = s - UP * (s @ UP)
+    below = np.array([2.0, 0.0, 2.0])  # under the opening's centre
+    patch_centre = below - HEIGHT / math.tan(math.radians(60)) * level / np.linalg.norm(level)
+    inside = patch_centre + np.array([[0, 0, 0], [0.3, 0, 0.2], [-0.3, 0, -0.2]])
+    outside = np.array([below + (below - patch_centre), [0.3, 0, 0.3]])  # the other side, a corner
+    pts = np.vstack([inside, outside])
+    got = sun.irradiance(pts, np.tile(UP, (len(pts), 1)), Tracer.mesh(patches), 1e-6)[:, 0] * EFFICACY
+    np.testing.assert_allclose(got[:3], 80_000.0 * math.sin(math.radians(60)), rtol=1e-9)
+    np.testing.assert_array_equal(got[3:], 0.0)
+    batch = sun.rays(4096, np.random.default_rng(1))
+    np.testing.assert_allclose(batch.power.sum(axis=0), sun.power(), rtol=1e-12)
+
+
+def test_the_sky_s_rays_carry_its_power_and_light_the_floor_as_its_gather_does(tmp_path):
+    """The sky's rays into the bounding box carry exactly its power (the ledger books it), and the
+    light they land on a roof-lit room's floor is the gathered light (--no-direct against the
+    default) within their noise."""
+    path, _ = roof_room(tmp_path, 4.0, rho=0.01)
+    _, patches, _ = prepare(path, 1.0, up="y")
+    sky = sky_light(patches, SkyModel("uniform", E_HZ))
+    batch = sky.rays(1 << 16, np.random.default_rng(3))
+    np.testing.assert_allclose(batch.power.sum(axis=0), sky.power(), rtol=1e-12)
+    floor = np.flatnonzero((patches.normal[:, 1] > 0.9) & (patches.centroid[:, 1] < 0.01))
+    runs = []
+    for direct in (True, False):
+        _, p, _ = prepare(path, 1.0, up="y")
+        p.sources = (sky_light(p, SkyModel("uniform", E_HZ)),)
+        from dcrad.solving.passes import solve_to_accuracy
+
+        solver = solve_to_accuracy(p, SolverConfig(accuracy=0.01, direct=direct, seed=5))
+        runs.append(p.radiosity[floor, 0] / p.rho[floor, 0] * EFFICACY)
+        assert abs(solver.ledger.closure()) < 1e-9
+    # the open-roofed room's floor: the sky seen through a 4 x 4 opening 3 m up
+    gathered, shot = runs
+    assert np.average(shot, weights=patches.area[floor]) == pytest.approx(
+        np.average(gathered, weights=patches.area[floor]), rel=0.02)
+
+
+# -- a run --------------------------------------------------------------------------------------------
+def test_a_daylit_run_writes_daylight_factors_that_match_the_closed_form(tmp_path):
+    """`dcrad solve --sky uniform` on the black room with a 4 x 4 m roof opening: patch_daylight_factor
+    of the floor's patches is 100 x the configuration factor of the opening averaged over each patch
+    (RMS within 2%), the work plane's likewise, the report's daylight section gives the sky component
+    and its per-surface figures, and the daylight-factor picture is written."""
+    path, opening = roof_room(tmp_path, 4.0)
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "dcrad.cli", "solve", str(path), "--up", "y", "--sky", "uniform",
+                           "--patch-size", "0.5", "--workplane", "0.8", "--out", str(out), "--width", "64",
+                           "--height", "48"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((out / "report.json").read_text())
+    day = report["daylight"]
+    assert day["sky_component"] is True and day["E_hz_lux"] == E_HZ
+    assert (out / "daylight_factor.png").exists()
+    z = np.load(out / "radiosity.npz")
+    _, patches, _ = prepare(path, 0.5, up="y")
+    floor = np.flatnonzero((patches.normal[:, 1] > 0.9) & (patches.centroid[:, 1] < 0.01))
+    corners = patches.corners(floor)
+    u = np.random.default_rng(0).random((64, 2))
+    s = np.sqrt(u[:, :1])
+    bary = np.hstack([1 - s, s * (1 - u[:, 1:]), s * u[:, 1:]])
+    pts = np.einsum("rc,kcx->krx", bary, corners).reshape(-1, 3)
+    loops = np.repeat(opening[None], len(pts), 0)
+    f = polygon_form_factor(pts, np.tile(UP, (len(pts), 1)), loops, np.tile(-UP, (len(pts), 1)))
+    truth = 100 * f.reshape(len(floor), -1).mean(axis=1)
+    got = z["patch_daylight_factor"][floor]
+    assert np.sqrt(np.mean((got / truth - 1) ** 2)) < 0.02
+    wp = z["workplane_points"]  # the file's frame is Y-up: the same as the solver's
+    lw = np.repeat(opening[None], len(wp), 0)
+    fw = polygon_form_factor(wp, np.tile(UP, (len(wp), 1)), lw, np.tile(-UP, (len(wp), 1)))
+    np.testing.assert_allclose(z["workplane_daylight_factor"], 100 * fw, rtol=0.03)
+    assert day["workplane"]["DF_avg_pct"] == pytest.approx(float(np.mean(100 * fw)), rel=0.02)
+
+
+@pytest.mark.parametrize("flags,words", [
+    (["--sky", "overcast"], "unknown sky"),
+    (["--sky", "iso:16"], "unknown sky"),
+    (["--sky", "iso:12"], "needs the sun's position"),
+    (["--sky", "clear", "--sun-altitude", "-5", "--sun-azimuth", "180"], "below the horizon"),
+    (["--sky", "clear", "--site", "51.5,0", "--time", "2026-12-21T23:00+00:00"], "below the horizon"),
+    (["--sun-altitude", "30", "--sun-azimuth", "180"], "give --sky too"),
+    (["--sky", "uniform", "--sun-illuminance", "50000"], "does not apply"),
+    (["--sky", "uniform", "--sun-altitude", "30", "--sun-azimuth", "180"], "does not apply"),
+    (["--sky", "clear", "--sun-altitude", "30"], "go together"),
+    (["--sky", "uniform", "--ground-reflectance", "1.2"], "--ground-reflectance"),
+    (["--sky", "uniform", "--sky-illuminance", "-3"], "--sky-illuminance"),
+    (["--sky", "clear", "--site", "51.5", "--time", "2026-06-21T12:00+00:00"], "--site"),
+    (["--sky", "clear", "--site", "51.5,0", "--time", "2026-06-21T12:00"], "UTC offset"),
+    (["--sky", "uniform", "--workers", "2"], "one process"),
+])
+def test_bad_daylight_flags_get_one_line_and_exit_2(tmp_path, flags, words):
+    path, _ = roof_room(tmp_path, 1.0)
+    proc = subprocess.run([sys.executable, "-m", "dcrad.cli", "solve", str(path), "--out", str(tmp_path / "o"),
+                           *flags], capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and words in lines[0], proc.stderr
+
+
+def test_daylight_spec_checks_its_values_before_the_scene_loads():
+    with pytest.raises(ConfigError, match="below the horizon"):
+        DaylightSpec("iso:7", sun_altitude=-1.0, sun_azimuth=90.0).check()
+    DaylightSpec("iso:7", sun_altitude=10.0, sun_azimuth=90.0).check()
+
+
+def test_the_sky_travels_exactly():
+    """to_wire / from_wire rebuild the sky and the sun to the bit (source_wire.py)."""
+    from dcrad.transport.source_wire import sources_from_table, sources_table
+
+    up, east, north = frame(np.eye(3))
+    sun_dir = sun_direction(35.0, 200.0, up, east, north)
+    model = SkyModel("iso:12", 12_000.0, sun_dir, 70_000.0, 0.25)
+    lo, hi = np.zeros(3), np.array([4.0, 3.0, 5.0])
+    sources = (Sky(model, lo, hi), Sun(sun_dir, 70_000.0, lo, hi))
+    back = sources_from_table(sources_table(sources))
+    s, _ = grid_directions()
+    np.testing.assert_array_equal(back[0].model.radiance(s[:5000]), model.radiance(s[:5000]))
+    np.testing.assert_array_equal(back[0].power(), sources[0].power())
+    np.testing.assert_array_equal(back[1].power(), sources[1].power())
+
+
+def _radiance(tool: str) -> str | None:
+    import importlib.util
+
+    spec = importlib.util.find_spec("pyradiance")
+    if spec is None or spec.origin is None:
+        return None
+    path = os.path.join(os.path.dirname(spec.origin), "bin", tool)
+    return path if os.path.exists(path) else None
+
+
+def _radiance_env() -> dict:
+    import importlib.util
+
+    spec = importlib.util.find_spec("pyradiance")
+    lib = os.path.join(os.path.dirname(spec.origin), "lib") if spec and spec.origin else ""
+    return {**os.environ, "RAYPATH": f".:{lib}"}
