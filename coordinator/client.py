@@ -172,22 +172,23 @@ def luminaire_paths(schedule, folder: Path) -> tuple[str, dict[str, Path]]:
 
 # -- calls ---------------------------------------------------------------------------------
 def _requests(scene: str, files: dict, solver: dict, divide: dict, preview: tuple[int, int] = (0, 0),
-              luminaires: str = ""):
+              luminaires: str = "", daylight: str = ""):
     yield pb.SubmitRequest(spec=pb.JobSpec(scene=scene, solver=pb.SolverSettings(**solver),
                                            divide=pb.DivideSettings(**divide),
                                            preview_width=preview[0], preview_height=preview[1],
-                                           luminaires=luminaires))
+                                           luminaires=luminaires, daylight=daylight))
     for rel, file in files.items():  # streamed from disk, one chunk at a time
         for chunk in path_chunks(file, rel):
             yield pb.SubmitRequest(file=chunk)
 
 
 def submit(address: str, path, solver: dict | None = None, divide: dict | None = None,
-           preview: tuple[int, int] = (0, 0), luminaires=None) -> pb.JobSummary:
+           preview: tuple[int, int] = (0, 0), luminaires=None, daylight=None) -> pb.JobSummary:
     """Upload the scene at ``path`` and its files with the settings; the new job's summary.
 
     preview: (width, height) of the preview images in pixels; 0 means the default.
     luminaires: a luminaire schedule (JSON) lighting the scene too, uploaded with its files.
+    daylight: a sky.DaylightSpec (``--sky``) lighting it from outside.
     """
     files = scene_paths(path)
     solver = {k: v for k, v in (solver or {}).items() if v is not None}
@@ -202,7 +203,8 @@ def submit(address: str, path, solver: dict | None = None, divide: dict | None =
             files |= extra
         with channel(address) as ch:
             return pb_grpc.CoordinatorStub(ch).Submit(_requests(next(iter(files)), files, solver, divide, preview,
-                                                                schedule))
+                                                                schedule, "" if daylight is None else
+                                                                daylight.to_json()))
 
 
 def watch(address: str, job_id: str, on_progress=None) -> pb.Progress | None:
@@ -373,13 +375,16 @@ def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
 @_handled
 def cmd_submit(args) -> int:
     address = resolve_address(args.coordinator)
-    if daylight_from_args(args) is not None:  # read first: a bad daylight flag is named as such
-        raise ConfigError("--sky runs in `dcrad solve` in one process for now; the service does not carry it yet")
+    daylight = daylight_from_args(args)  # read first: a bad daylight flag is named as such
+    if daylight is not None and args.subscenes > 1:
+        raise ConfigError("--sky runs shared on the workers, not divided: drop --subscenes (a subscene cannot tell "
+                          "whether a line of sight leaves the model)")
     solver = from_args(SolverConfig, args).as_dict() | scene_values(args)
     # subscenes 0 travels as 0: the coordinator makes one per registered worker
     divide = divide_from_args(args, max(args.subscenes, 1)).as_dict() | {"subscenes": args.subscenes}
     with tempfile.TemporaryDirectory(prefix="dcrad-scene-") as tmp:
-        job = submit(address, resolve_scene(args.scene, Path(tmp)), solver, divide, luminaires=args.luminaires)
+        job = submit(address, resolve_scene(args.scene, Path(tmp)), solver, divide, luminaires=args.luminaires,
+                     daylight=daylight)
     print(job.job_id, flush=True)
     if not args.wait:
         return 0

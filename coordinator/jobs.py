@@ -36,13 +36,13 @@ from dcrad.division.placement import check_subscenes
 from dcrad.errors import DcradError
 from dcrad.outputs import render
 from dcrad.outputs.report import residual_estimate
-from dcrad.pipeline import finish_run, output_views, prepare, scene_settings
+from dcrad.pipeline import finish_run, light_sources, output_views, prepare, scene_settings
 from dcrad.runs import Divided, RunHooks, Shared
 from dcrad.settings import from_pb
 from dcrad.solving.accuracy import resolve
 from dcrad.solving.strategy import Strategy, on_workers
-from dcrad.transport.luminaires import load_schedule
 from dcrad.transport.optics import opaque_for
+from dcrad.transport.sky import DaylightSpec
 from dcrad.transport.source_wire import sources_table
 from dcrad.v1 import dcrad_pb2 as pb
 from dcrad.wire import estimate_to_pb, ledger_to_pb
@@ -251,9 +251,6 @@ class JobManager:
                                  f"the job)")
             scene, patches, size = self._prepare(spec, scene_dir, phases)
             sources_table(patches.sources)  # every light source can travel to the workers
-            glass = opaque_for(patches, "the service's")  # shared and divided runs carry no glass yet
-            if glass is not None:
-                scene.warnings.append(glass)
             resolve(solver_config(spec.solver), len(patches))  # an accuracy beyond reach is refused now
             check_subscenes(self._divide(spec, 1).subscenes, len(patches))
             # kept for the job's run (meshing a scene twice cost 0.4 s at 201k patches)
@@ -269,10 +266,10 @@ class JobManager:
     @staticmethod
     def _prepare(spec: pb.JobSpec, scene_dir: Path, phases: dict):
         """(scene, patches, element size) of the job's upload: loaded, validated and meshed, lit by
-        its luminaire schedule too when it has one (luminaires.load_schedule, as `dcrad solve`)."""
+        its luminaire schedule and its sky too when it has them (pipeline.light_sources, as `dcrad solve`)."""
         scale = spec.solver.scale or 1.0
-        sources = None if not spec.luminaires else \
-            (lambda sc: load_schedule(scene_dir / spec.luminaires, sc, scale))
+        sources = light_sources(scene_dir / spec.luminaires if spec.luminaires else None,
+                                DaylightSpec.from_json(spec.daylight) if spec.daylight else None, scale)
         return prepare(scene_dir / spec.scene, spec.solver.patch_size or None, scale, spec.solver.up or None,
                        spec.solver.two_sided, timings=phases, workplane=spec.solver.workplane, sources=sources)
 
@@ -322,9 +319,6 @@ class JobManager:
             t0 = time.perf_counter()
             phases: dict[str, float] = {}
             scene, patches, size = self._prepare(spec, job.root / "scene", phases)
-            glass = opaque_for(patches, "the service's")  # as at the upload (``submit``)
-            if glass is not None:
-                scene.warnings.append(glass)
             timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
         mem = MemoryLog(job.id)
         mem("load and mesh")
@@ -345,6 +339,12 @@ class JobManager:
     def _solve_divided(self, job: Job, scene, patches, size: float, config: SolverConfig, timings: dict,
                        mem: MemoryLog, strategy: Strategy) -> None:
         """The job divided into subscenes on the workers (``runs.Divided`` on ``WorkersBackend``)."""
+        if any(getattr(s, "outside", False) for s in patches.sources):
+            raise DcradError("daylight (--sky) runs shared on the workers, not divided: a subscene cannot tell "
+                             "whether a line of sight leaves the model (drop --subscenes)")
+        glass = opaque_for(patches, "divided")  # shared runs carry the panes; subscenes do not yet
+        if glass is not None:
+            scene.warnings.append(glass)
         spec = job.spec
         divide = self._divide(spec, strategy.subscenes)
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide

@@ -134,10 +134,9 @@ def cmd_solve(args) -> int:
 
     check_image_size(args.width, args.height)
     daylight = daylight_from_args(args)  # read (and refused) before the scene loads
-    if daylight is not None and (args.planes or args.subscenes > 1 or (args.workers or 0) > 0):
-        raise ConfigError("--sky runs in one process for now: drop --workers, --subscenes and --planes "
-                          "(the sky lights the whole model through every opening; divided and shared runs "
-                          "do not carry it yet)")
+    if daylight is not None and (args.planes or args.subscenes > 1):
+        raise ConfigError("--sky runs in one process or shared on workers, not divided: drop --subscenes and "
+                          "--planes (a subscene cannot tell whether a line of sight leaves the model)")
     choice, loaded = None, None
     # caught from the start: a stop while the scene loads and meshes ends the command at once
     stop = _Interrupt(before="while the scene loaded and meshed")
@@ -227,9 +226,9 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
     strategy = local(n, os.cpu_count() or 1, gathers(config, n))
     workers, choice = strategy.workers, strategy.why
     if args.sky is not None and workers > 0:
-        # the sky and sun run in one process for now (transport/sky.py)
-        workers, choice = 0, Choice("workers", "solved in this process: daylight (--sky) runs in one process "
-                                               "for now")
+        # a daylit run shares its workers only when asked to (--workers N): it was measured in one process
+        workers, choice = 0, Choice("workers", "solved in this process: daylight (--sky) runs here by default "
+                                               "(--workers N shares it)")
     elif scene.tau is not None and workers > 0:
         # glass runs in one process for now (optics.check_single)
         workers, choice = 0, Choice("workers", "solved in this process: the scene's glass (ideal specular "
@@ -364,7 +363,7 @@ def _run_embedded(args, config: SolverConfig, out: Path, stop: "_Interrupt") -> 
                 divide["subscenes"] = None
             try:
                 job = client.submit(cluster.address, path, solver, divide, (args.width, args.height),
-                                    luminaires=args.luminaires)
+                                    luminaires=args.luminaires, daylight=daylight_from_args(args))
             except client.grpc.RpcError as exc:
                 raise DcradError(client.rpc_message(exc, cluster.address)) from None
             if cluster.web_url:

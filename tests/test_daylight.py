@@ -376,7 +376,7 @@ def test_a_daylit_run_writes_daylight_factors_that_match_the_closed_form(tmp_pat
     (["--sky", "uniform", "--sky-illuminance", "-3"], "--sky-illuminance"),
     (["--sky", "clear", "--site", "51.5", "--time", "2026-06-21T12:00+00:00"], "--site"),
     (["--sky", "clear", "--site", "51.5,0", "--time", "2026-06-21T12:00"], "UTC offset"),
-    (["--sky", "uniform", "--workers", "2"], "one process"),
+    (["--sky", "uniform", "--subscenes", "2"], "not divided"),
 ])
 def test_bad_daylight_flags_get_one_line_and_exit_2(tmp_path, flags, words):
     path, _ = roof_room(tmp_path, 1.0)
@@ -407,6 +407,74 @@ def test_the_sky_travels_exactly():
     np.testing.assert_array_equal(back[0].model.radiance(s[:5000]), model.radiance(s[:5000]))
     np.testing.assert_array_equal(back[0].power(), sources[0].power())
     np.testing.assert_array_equal(back[1].power(), sources[1].power())
+
+
+def glazed_office(folder) -> "os.PathLike":
+    """A 3 x 4 x 2.7 m room, Y up, a 2 x 1.2 m window of 6 mm clear glass (MTL illum 4, Tf, Ni) in
+    its z = 0 wall, grey surfaces: the file the coordinator reads its panes from."""
+    folder.mkdir(parents=True, exist_ok=True)
+    v, f = [], {}
+
+    def quad(mat, *pts):
+        base = len(v) + 1
+        v.extend(pts)
+        f.setdefault(mat, []).extend([(base, base + 1, base + 2), (base, base + 2, base + 3)])
+
+    w_, d_, h_ = 3.0, 4.0, 2.7
+    quad("floor", (0, 0, 0), (0, 0, d_), (w_, 0, d_), (w_, 0, 0))
+    quad("wall", (0, h_, 0), (w_, h_, 0), (w_, h_, d_), (0, h_, d_))
+    quad("wall", (0, 0, d_), (0, h_, d_), (w_, h_, d_), (w_, 0, d_))
+    quad("wall", (0, 0, 0), (0, h_, 0), (0, h_, d_), (0, 0, d_))
+    quad("wall", (w_, 0, 0), (w_, 0, d_), (w_, h_, d_), (w_, h_, 0))
+    for x0, x1, y0, y1 in ((0, 0.5, 0, h_), (2.5, w_, 0, h_), (0.5, 2.5, 0, 0.9), (0.5, 2.5, 2.1, h_)):
+        quad("wall", (x0, y0, 0), (x1, y0, 0), (x1, y1, 0), (x0, y1, 0))
+    quad("glass", (0.5, 0.9, 0), (2.5, 0.9, 0), (2.5, 2.1, 0), (0.5, 2.1, 0))
+    lines = ["mtllib glazed.mtl"] + [f"v {x:g} {y:g} {z:g}" for x, y, z in v]
+    for mat, tris in f.items():
+        lines += [f"o {mat}", f"usemtl {mat}"] + [f"f {a} {b} {c}" for a, b, c in tris]
+    (folder / "glazed.obj").write_text("\n".join(lines) + "\n")
+    (folder / "glazed.mtl").write_text("newmtl floor\nKd 0.3 0.3 0.3\nnewmtl wall\nKd 0.6 0.6 0.6\n"
+                                       "newmtl glass\nKd 0 0 0\nillum 4\nTf 0.8788 0.8788 0.8788\nNi 1.52\n")
+    return folder / "glazed.obj"
+
+
+def test_a_glazed_daylit_room_runs_shared_as_in_one_process(tmp_path):
+    """Shared runs carry glass and sky: the glazed room under the overcast sky, shared by two
+    in-process replicas, lights its floor as the run in one process does (within the two runs'
+    estimates); on two workers (`dcrad submit` with the daylight settings, the panes read by the
+    coordinator from the MTL) it is the in-process shared run to the bit, with its daylight section."""
+    from coordinator import client
+    from coordinator.embedded import LocalCluster
+    from dcrad.solving.passes import solve_to_accuracy
+    from dcrad.solving.share import LocalShares, run_shared
+    from dcrad.transport.sky import daylight_sources
+
+    path = glazed_office(tmp_path / "room")
+    spec = DaylightSpec("cie-overcast")
+    cfg = SolverConfig(accuracy=0.03, seed=4)
+    scene, single, _ = prepare(path, 0.3, sources=lambda sc: daylight_sources(spec, sc))
+    assert single.glazing is not None and single.glazing.mask.any()
+    solve_to_accuracy(single, cfg)
+    _, p, _ = prepare(path, 0.3, sources=lambda sc: daylight_sources(spec, sc))
+    ref = run_shared(p, cfg, 2, LocalShares(p, cfg, Tracer.mesh(p)))
+    assert ref is not None and abs(ref.ledger.closure()) < 1e-9
+    p.pool()
+    floor = np.flatnonzero((p.normal[:, 1] > 0.9) & (p.centroid[:, 1] < 0.01))
+    a = p.area[floor]
+    mean_shared = np.average(p.radiosity[floor, 0], weights=a)
+    mean_single = np.average(single.radiosity[floor, 0], weights=a)
+    assert mean_shared == pytest.approx(mean_single, rel=0.03)
+    with LocalCluster(workers=2, data=tmp_path / "cluster") as cluster:
+        job = client.submit(cluster.address, path, {"accuracy": 0.03, "seed": 4, "patch_size": 0.3}, {},
+                            daylight=spec)
+        last = client.watch(cluster.address, job.job_id)
+        assert last is not None and last.job.state == "done", last.job.error if last else None
+        client.fetch(cluster.address, job.job_id, tmp_path / "out")
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    b = np.load(tmp_path / "out" / "radiosity.npz")["patch_B"]
+    assert np.array_equal(b, p.radiosity)
+    assert report["shared"]["workers"] == 2 and report["daylight"]["sky"]["sky"] == "cie-overcast"
+    assert not any("opaque" in w for w in report["warnings"])
 
 
 def _radiance(tool: str) -> str | None:

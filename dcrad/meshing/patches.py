@@ -113,7 +113,8 @@ class Patches:
     #: light sources that are not patches (emitters.Emitter: point lights, luminaires); one process only
     sources: tuple = ()
     #: the panes among the patches (optics.Glazing: ideal specular transmitters, the seed's eq. 1.2);
-    #: None: no glass.  One process only for now (``optics.check_single``)
+    #: None: no glass.  In one process and shared runs (it travels in ``table_arrays``); divided runs
+    #: take the panes as opaque (``optics.opaque_for``)
     glazing: Glazing | None = None
     #: what the mesh's adaptive refinement did (mesh.adapt's dict and its ``seconds``); None: not run
     adapted: dict | None = None
@@ -137,9 +138,13 @@ class Patches:
 
     # -- as arrays (a worker's copy) ---------------------------------------------------
     def table_arrays(self) -> dict:
-        """The table's own arrays (not B or dB): what ``from_table`` rebuilds it from."""
-        return {"vertices": self.vertices, "faces": self.faces, "rho": self.rho, "emission": self.emission,
-                "source": self.source, "obj": self.obj, "twin": self.twin, "cluster": self.cluster}
+        """The table's own arrays (not B or dB): what ``from_table`` rebuilds it from (its panes too)."""
+        out = {"vertices": self.vertices, "faces": self.faces, "rho": self.rho, "emission": self.emission,
+               "source": self.source, "obj": self.obj, "twin": self.twin, "cluster": self.cluster}
+        if self.glazing is not None:
+            out |= {"glazing_mask": self.glazing.mask, "glazing_tau": self.glazing.tau_n,
+                    "glazing_ior": self.glazing.ior}
+        return out
 
     @classmethod
     def from_table(cls, arrays: dict, names: list, radiosity: np.ndarray | None = None,
@@ -147,8 +152,11 @@ class Patches:
         """The table of ``table_arrays`` (``twin``, ``cluster`` optional), B and dB given or starting at E."""
         given: dict = {"radiosity": radiosity, "unshot": unshot, "twin": arrays.get("twin"),
                        "cluster": arrays.get("cluster")}
-        return cls(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
-                   arrays["obj"], list(names), **{k: v for k, v in given.items() if v is not None})
+        out = cls(arrays["vertices"], arrays["faces"], arrays["rho"], arrays["emission"], arrays["source"],
+                  arrays["obj"], list(names), **{k: v for k, v in given.items() if v is not None})
+        if arrays.get("glazing_mask") is not None:
+            out.glazing = Glazing(arrays["glazing_mask"], arrays["glazing_tau"], arrays["glazing_ior"])
+        return out
 
     # -- derived geometry (cached) -------------------------------------------------
     def __len__(self) -> int:

@@ -101,14 +101,23 @@ class DirectPhase:
         irradiance of a plane that sees all of the source (``scale_irradiance``), which is the noise
         its shot rays would leave at the run's density but spends no ray on the outside of the model
         (a small roof opening: 98% of the sky's rays into the bounding box met the roof's outside).
-        What does not land is booked escaped; the final plan is not taken (its direct light is a
-        sampled estimate, which the final gather's books do not carry).  Returns the rays traced."""
+        The books take as emitted what lands (its power into the bounding box is set aside, and the
+        run's power per ray scaled to it from the portal map's pilot); the final plan is not taken (its
+        direct light is a sampled estimate, which the final gather's books do not carry).  Returns the
+        rays traced."""
         s = self.solver
         p = s.patches
         power = np.asarray(source.power(), np.float64)
         rows = np.flatnonzero((p.area > 0) & p.rho.any(axis=1))
         if p.glazing is not None:  # a pane's own share of the sky (1 - tau) is not gathered: its Kd is small
             rows = rows[~p.glazing.mask[rows]]
+        # the books hold what lands, not all the light into the bounding box (30x more for a side-lit
+        # room): the run's density and its unshot share (the stop rule's "all shot") are of that
+        if len(rows):
+            guess = source.pilot(p.corners(rows).mean(axis=1), p.normal[rows], s.tracer, ray_offset(p))
+            landed_guess = guess * float(p.area[rows].sum())
+            if 0.0 < landed_guess < float(power.mean()):
+                s.power_per_ray *= landed_guess / float(power.mean())
         per_half = np.ceil(0.5 * source.scale_irradiance() * p.area[rows] / s.power_per_ray)
         counts = np.clip(per_half, SAMPLED_MIN_RAYS, SAMPLED_MAX_RAYS).astype(np.int64)
         if len(rows):
@@ -121,6 +130,9 @@ class DirectPhase:
         got = received[keep]
         magnitude = np.abs(got)
         landed = got.sum(axis=0)
+        if np.all(landed > 0):  # it emitted, in the books, what it landed: nothing escapes
+            s.ledger.emitted = s.ledger.emitted + landed - power
+            power = landed
         tally = DirectTally(got, rows[keep], power - landed, np.zeros(3), np.zeros(len(s.back_by_obj)),
                             np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
                             (magnitude * p.rho[rows[keep]]).sum(axis=0), np.abs(power - landed), received_a[keep],

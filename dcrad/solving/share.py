@@ -61,7 +61,6 @@ from dcrad.solving.solver import ReplicaRole, Snapshot, Solver, Stats
 from dcrad.solving.stiffness import Stiffness
 from dcrad.transport.direct import AnalyticGather, DirectTally, GatherStopped, merge, shared_rate
 from dcrad.transport.final import FinalGather
-from dcrad.transport.optics import check_single as check_glass
 from dcrad.transport.rays import Tracer
 from dcrad.transport.shooters import spatial_order
 
@@ -394,7 +393,6 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
     ``direct``, ``replicas`` and ``gather`` methods (the coordinator's, on workers).  Returns None
     when the lights make no exact form factors (the caller solves another way).  ``on_phase(name,
     elapsed s, rays so far, estimate or None)`` after each phase.  The result is left in ``patches``."""
-    check_glass(patches.glazing, "shared")
     cfg = resolve(config, patches.read_units)
     t0 = time.perf_counter()
     emission = patches.emission.copy()
@@ -453,7 +451,12 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
         if by and not stopped:
             cut.append(Choice("budget", budget_cut_note(more, first, by, cfg, shot_rays)))
 
-    if stopped == "" and receivers:
+    # as in one process, no final gather where its books cannot carry the light: a sampled source's
+    # direct light (the sky's: the gather would read it as reflected light and lose it, 4.6% of a
+    # side-lit floor) or glass (DirectPhase.glass_refuses_plan)
+    no_plan = any(not getattr(s, "exact", True) for s in patches.sources) or (
+        patches.glazing is not None and bool(patches.glazing.mask.any()))
+    if stopped == "" and receivers and not no_plan:
         fg = FinalGather(patches, None, shot.diff, shot.direct, shot.direct_a, cfg.batch_rays)
         pos = [np.searchsorted(fg.rec, rows) for rows in parts]
         est_now: list = []
@@ -486,7 +489,7 @@ def run_shared(patches: Patches, config: SolverConfig, k: int, shares, on_phase=
                                    on_first=first_cut).by
         if est_now:
             est = est_now[0]
-    else:
+    elif not no_plan:
         more, budget_cut = fit_round(first + first % 2, cfg, shot_rays, time.perf_counter() - t0, receivers)
         first_cut(more, budget_cut)
     seconds["gather_s"] = time.perf_counter() - t1

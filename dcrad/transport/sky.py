@@ -42,6 +42,7 @@ east, +Y north, +Z up).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import math
 from dataclasses import dataclass, field
@@ -308,8 +309,6 @@ def _halves(n: int, rng: np.random.Generator) -> np.ndarray | None:
 PORTAL_CELLS = 64
 #: pilot rays a receiver (at most PILOT_RAYS_MAX in all) the portal map is learnt from
 PILOT_RAYS, PILOT_RAYS_MAX = 32, 1 << 21
-#: share of a gather's rays cosine-distributed; the rest aim at the portal map
-COSINE_SHARE = 0.5
 #: cells the map's reached cells are grown by, each way (the pilot misses an opening's edges, and a
 #: grazing line of sight leaves the box a few cells past the opening it went through)
 GROW_CELLS = 2
@@ -430,6 +429,7 @@ class Sky:
         self._table: tuple[np.ndarray, np.ndarray, float] | None = None
         #: where its light comes in (learnt on the first gather; None: not yet)
         self.portals: Portals | None = None
+        self.pilot_mean = 0.0
 
     def _flux(self) -> tuple[np.ndarray, np.ndarray, float]:
         """(cumulative joint weights over (face, cell) (6 * cells,), the cells' radiance (cells,), total W per
@@ -490,13 +490,25 @@ class Sky:
         start = x[owner] + offset * n[owner]
         prim, _, _, tau = tracer.through(start, d)
         out = np.flatnonzero(prim == MISS)
-        self.portals.learn(start[out], d[out], self.model.radiance(d[out]) * tau[out].mean(axis=1))
+        read = self.model.radiance(d[out]) * tau[out].mean(axis=1)
+        self.portals.learn(start[out], d[out], read)
+        #: W/m^2, the pilot's mean irradiance over its points (``pilot``)
+        self.pilot_mean = math.pi * float(read.sum()) / max(len(owner), 1)
 
-    def _read(self, x: np.ndarray, n: np.ndarray, u: np.ndarray, cosine: np.ndarray, tracer) -> np.ndarray:
+    def pilot(self, points: np.ndarray, normals: np.ndarray, tracer, offset: float) -> float:
+        """W/m^2: about the mean irradiance of sky and ground over ``points`` (the portal map's pilot,
+        learnt from them when it has not been yet): what sets how many rays the gather takes."""
+        self.learn(points, normals, tracer, offset)
+        return self.pilot_mean
+
+    def _read(self, x: np.ndarray, n: np.ndarray, u: np.ndarray, cosine: np.ndarray, share: np.ndarray,
+              tracer) -> np.ndarray:
         """(m,3) each ray's estimate of the irradiance at ``x`` (m,3, off the surface) facing ``n``: rays
         ``cosine`` (m,) bool cosine-distributed from ``u[:, :2]``, the others toward the portal map from
-        ``u[:, 2:5]``; f / (COSINE_SHARE p_cos + (1 - COSINE_SHARE) p_portal) (the balance heuristic),
-        or pi L tau where the map is empty (every ray cosine)."""
+        ``u[:, 2:5]``; f / (s p_cos + (1 - s) p_portal), s = ``share`` (m,) the cosine rays' share of
+        their point's (the balance heuristic: an odd count's one more cosine ray than aimed ones, read
+        as a half, biased a side-lit room's sky light 4% low at 8 to 15 rays a receiver), or pi L tau
+        where the map is empty (every ray cosine)."""
         portals = self.portals if self.portals is not None and self.portals.cdf is not None else None
         t, b = onb(n)
         d = np.einsum("mi,mij->mj", cosine_hemisphere(u[:, :2]), np.stack([t, b, n], axis=1))
@@ -508,7 +520,7 @@ class Sky:
             d[aim] = portals.sample(x[aim], u[aim, 2:5])
         cos = np.einsum("ij,ij->i", d, n)
         prim, _, _, tau = tracer.through(x, d)
-        mix = COSINE_SHARE * np.maximum(cos, 0.0) / math.pi + (1.0 - COSINE_SHARE) * portals.pdf(x, d)
+        mix = share * np.maximum(cos, 0.0) / math.pi + (1.0 - share) * portals.pdf(x, d)
         with np.errstate(divide="ignore", invalid="ignore"):
             f = np.where((prim == MISS) & (cos > 0) & (mix > 0), self.model.radiance(d) * cos / mix, 0.0)
         return f[:, None] * tau
@@ -539,7 +551,7 @@ class Sky:
             j = np.tile(np.arange(rays), len(rows))
             u = lattice(j // 2, shift[owner], 5)
             x = points[owner] + offset * normals[owner]
-            seen = self._read(x, normals[owner], u, j % 2 == 0, tracer)
+            seen = self._read(x, normals[owner], u, j % 2 == 0, np.full(len(j), ((rays + 1) // 2) / rays), tracer)
             for c in range(3):
                 out[rows, c] = np.bincount(owner - lo, weights=seen[:, c], minlength=len(rows)) / rays
         return out
@@ -562,6 +574,7 @@ class Sky:
         total = int(counts.sum())
         owner_all = np.repeat(np.arange(k), counts)
         index_all = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+        share = ((counts + 1) // 2) / np.maximum(counts, 1)  # the even rays are cosine-distributed
         out = []
         for _ in range(2):
             shift = rng.random((k, 7))
@@ -572,7 +585,7 @@ class Sky:
                 u = lattice(j // 2, shift[owner], 7)
                 x = triangle_points(corners[:, 0], corners[:, 1], corners[:, 2], u[:, 5:], owner)
                 x += (centre[owner] - x) * 1e-6 + offset * normals[owner]  # off the edges and the surface
-                seen = self._read(x, normals[owner], u, j % 2 == 0, tracer)
+                seen = self._read(x, normals[owner], u, j % 2 == 0, share[owner], tracer)
                 for c in range(3):
                     h[:, c] += np.bincount(owner, weights=seen[:, c], minlength=k)
             out.append(h / np.maximum(counts, 1)[:, None])
@@ -688,6 +701,26 @@ class DaylightSpec:
         if positioned and not needs_sun(self.sky) and not (self.sun_lux or 0) > 0:
             raise ConfigError(f"the sun's position does not apply to --sky {self.sky}, whose luminance does not "
                               f"depend on the sun, without --sun-illuminance")
+
+    def to_json(self) -> str:
+        """The spec as JSON (the service's JobSpec.daylight); ``from_json`` reads it back."""
+        import json  # noqa: PLC0415
+
+        d = dataclasses.asdict(self)
+        d["time"] = None if self.time is None else self.time.isoformat()
+        return json.dumps(d)
+
+    @classmethod
+    def from_json(cls, text: str) -> "DaylightSpec":
+        import json  # noqa: PLC0415
+
+        try:
+            d = json.loads(text)
+            d["time"] = None if d.get("time") is None else _dt.datetime.fromisoformat(d["time"])
+            d["site"] = None if d.get("site") is None else tuple(d["site"])
+            return cls(**d)
+        except (ValueError, TypeError, KeyError) as exc:
+            raise ConfigError(f"the job's daylight settings cannot be read: {exc}") from None
 
     def check(self) -> None:
         """Every value read and the sun placed (ConfigError else), before the scene is loaded."""

@@ -145,20 +145,22 @@ class DivideSettings(_message.Message):
     def __init__(self, subscenes: _Optional[int] = ..., iterations: _Optional[int] = ..., solid: _Optional[int] = ..., cell_size: _Optional[float] = ..., mode: _Optional[str] = ..., max_iterations: _Optional[int] = ...) -> None: ...
 
 class JobSpec(_message.Message):
-    __slots__ = ("scene", "solver", "divide", "preview_width", "preview_height", "luminaires")
+    __slots__ = ("scene", "solver", "divide", "preview_width", "preview_height", "luminaires", "daylight")
     SCENE_FIELD_NUMBER: _ClassVar[int]
     SOLVER_FIELD_NUMBER: _ClassVar[int]
     DIVIDE_FIELD_NUMBER: _ClassVar[int]
     PREVIEW_WIDTH_FIELD_NUMBER: _ClassVar[int]
     PREVIEW_HEIGHT_FIELD_NUMBER: _ClassVar[int]
     LUMINAIRES_FIELD_NUMBER: _ClassVar[int]
+    DAYLIGHT_FIELD_NUMBER: _ClassVar[int]
     scene: str
     solver: SolverSettings
     divide: DivideSettings
     preview_width: int
     preview_height: int
     luminaires: str
-    def __init__(self, scene: _Optional[str] = ..., solver: _Optional[_Union[SolverSettings, _Mapping]] = ..., divide: _Optional[_Union[DivideSettings, _Mapping]] = ..., preview_width: _Optional[int] = ..., preview_height: _Optional[int] = ..., luminaires: _Optional[str] = ...) -> None: ...
+    daylight: str
+    def __init__(self, scene: _Optional[str] = ..., solver: _Optional[_Union[SolverSettings, _Mapping]] = ..., divide: _Optional[_Union[DivideSettings, _Mapping]] = ..., preview_width: _Optional[int] = ..., preview_height: _Optional[int] = ..., luminaires: _Optional[str] = ..., daylight: _Optional[str] = ...) -> None: ...
 
 class SubmitRequest(_message.Message):
     __slots__ = ("spec", "file")
