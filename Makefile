@@ -54,6 +54,7 @@ BENCH := \
 	"bench_luminaires.py --accuracy 0.05 --no-reference" \
 	"bench_sigterm.py office:rows=3,cols=3 --workers 0 --delays 3" \
 	"bench_code.py" \
+	"bench_daylight.py --reference-accuracy 0.01 --radiance-high '-ab 5 -ad 2048 -as 1024 -aa 0.1 -ar 256'" \
 	"bench_coordinator_memory.py -- $(BIN)/dcrad solve office --workers 2 --accuracy 0.1 --out out/bench-coordinator-memory"
 bench: install
 	@for f in bench/bench_*.py; do case ' $(BENCH) ' in *'"'$$(basename $$f)* ) ;; \
