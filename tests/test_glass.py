@@ -249,8 +249,9 @@ def write_room(folder, mtl: str) -> str:
 
 def test_mtl_glass_is_read_as_panes_and_bad_glass_is_refused(tmp_path):
     """MTL ``Tf`` with ``illum 4`` (and ``Ni``) makes a pane of that normal transmittance, two-sided;
-    ``d`` alone gives 1 - d; Tf on an opaque illum model is reported, not taken; a transmittance
-    outside [0, 1] or an index below 1 is refused by name."""
+    ``d`` alone gives 1 - d; Tf on an opaque illum model is reported, not taken (exporters write
+    ``Tf 1 1 1`` on every material, meaning no filter); a pane's transmittance outside [0, 1) or an
+    index below 1 is refused by name."""
     from dcrad.errors import SceneValueError
     from dcrad.io.scene import load_scene
 
@@ -266,7 +267,8 @@ def test_mtl_glass_is_read_as_panes_and_bad_glass_is_refused(tmp_path):
     assert np.allclose(scene.tau[np.array([n.startswith("window") for n in scene.names])[scene.obj]], 0.9)
     scene = load_scene(write_room(tmp_path / "c", "Kd 0 0 0\nTf 0.8 0.8 0.8\nillum 2"), up="y")
     assert scene.tau is None and any("illum 2 is not glass" in w for w in scene.warnings)
-    for bad, what in (("Tf 1.2 0.8 0.8\nillum 4", "outside"), ("Tf 0.8 0.8 0.8\nNi 0.5\nillum 4", "refractive")):
+    for bad, what in (("Tf 1.2 0.8 0.8\nillum 4", "outside"), ("Tf 0.8 0.8 0.8\nNi 0.5\nillum 4", "refractive"),
+                      ("Tf 1 1 1\nillum 4", "less than all"), ("Tf -0.1 0.8 0.8\nillum 6", "outside")):
         with pytest.raises(SceneValueError, match=what):
             load_scene(write_room(tmp_path / what, "Kd 0 0 0\n" + bad), up="y")
 
