@@ -86,6 +86,9 @@ class DirectPhase:
             source = self.sources_left.pop(0)
             if float(np.abs(source.power()).sum()) <= 0:
                 continue
+            attune = getattr(source, "attune", None)  # the outputs read a sampled source's light as this run
+            if attune is not None:
+                attune(s.config.seed, s.config.accuracy)
             if not s.config.direct:
                 rays += self.shoot_source(source)
             elif getattr(source, "exact", True):

@@ -75,9 +75,12 @@ SKY_NAMES = ("uniform", "cie-overcast", "clear", *(f"iso:{t}" for t in ISO_SKIES
 GRID = (512, 1024)
 #: rays a point reads the sky's direct light with (black surfaces, the work plane): RAYS_BUDGET over the
 #: points, within RAYS_PER_POINT (at 4,096 a point under a small roof opening reads within 2% of the
-#: closed form, at 16,384 within 0.5%: tests/test_daylight.py)
+#: closed form, at 16,384 within 0.5%: bench_daylight.py); the floor keeps a model's many black patches
+#: (a lamp's housing, 35k pane patches) from tracing a thousand rays each
 RAYS_BUDGET = 1 << 23
-RAYS_PER_POINT = (1024, 16384)
+RAYS_PER_POINT = (64, 16384)
+#: the accuracy at which the point estimator spends RAYS_BUDGET (``Sky.attune``)
+REFERENCE_ACCURACY = 0.02
 #: direct normal illuminance of ``--sky clear``'s sun when none is given, lux (a clear day's sun at
 #: mid altitudes: 70-100 klx)
 CLEAR_SUN_LUX = 80_000.0
@@ -430,6 +433,8 @@ class Sky:
         #: where its light comes in (learnt on the first gather; None: not yet)
         self.portals: Portals | None = None
         self.pilot_mean = 0.0
+        #: the run's seed and its accuracy's share of the point estimator's budget (``attune``)
+        self.seed, self.quality = 0, 1.0
 
     def _flux(self) -> tuple[np.ndarray, np.ndarray, float]:
         """(cumulative joint weights over (face, cell) (6 * cells,), the cells' radiance (cells,), total W per
@@ -495,6 +500,15 @@ class Sky:
         #: W/m^2, the pilot's mean irradiance over its points (``pilot``)
         self.pilot_mean = math.pi * float(read.sum()) / max(len(owner), 1)
 
+    def attune(self, seed: int, accuracy: float) -> None:
+        """Read the points of this run's outputs (``irradiance``) with its ``seed`` (another seed:
+        other rays, so that a reference run is independent of the run it checks) and a budget of
+        RAYS_BUDGET x (REFERENCE_ACCURACY / ``accuracy``)^2 rays: a run asked for 1% reads its work
+        plane with 4x the rays of one at 2%."""
+        self.seed = int(seed)
+        if accuracy > 0 and math.isfinite(accuracy):
+            self.quality = max(1.0, (REFERENCE_ACCURACY / accuracy) ** 2)
+
     def pilot(self, points: np.ndarray, normals: np.ndarray, tracer, offset: float) -> float:
         """W/m^2: about the mean irradiance of sky and ground over ``points`` (the portal map's pilot,
         learnt from them when it has not been yet): what sets how many rays the gather takes."""
@@ -541,8 +555,9 @@ class Sky:
             return out
         self.learn(points, normals, tracer, offset)
         if rays is None:
-            rays = int(min(max(RAYS_BUDGET // m, RAYS_PER_POINT[0]), RAYS_PER_POINT[1])) & ~1
-        rng = np.random.default_rng(_seed(points))
+            budget = RAYS_BUDGET * self.quality
+            rays = int(min(max(budget // m, RAYS_PER_POINT[0]), RAYS_PER_POINT[1])) & ~1
+        rng = np.random.default_rng([self.seed, _seed(points)])
         shift = rng.random((m, 5))
         chunk = max(1, (1 << 20) // rays)
         for lo in range(0, m, chunk):
