@@ -100,10 +100,10 @@ class DirectPhase:
     def gather_sampled(self, source) -> int:
         """The direct light of a source without an exact gather (the sky, ``patch_gather``), gathered
         onto every receiver by rays from all over it, in two independent halves whose difference
-        is its noise (noise.py): a receiver of area A takes A E / (power per ray) rays, E the
-        irradiance of a plane that sees all of the source (``scale_irradiance``), which is the noise
-        its shot rays would leave at the run's density but spends no ray on the outside of the model
-        (a small roof opening: 98% of the sky's rays into the bounding box met the roof's outside).
+        is its noise (noise.py): a receiver of area A takes A E / (power per ray) rays, E the mean
+        irradiance of the receivers (the portal map's pilot), the rays the light landing on it would
+        take shot at the run's density, none spent on the outside of the model (a small roof
+        opening: 98% of the sky's rays into the bounding box met the roof's outside).
         The books take as emitted what lands (its power into the bounding box is set aside, and the
         run's power per ray scaled to it from the portal map's pilot); the final plan is not taken (its
         direct light is a sampled estimate, which the final gather's books do not carry).  Returns the
@@ -121,7 +121,10 @@ class DirectPhase:
             landed_guess = guess * float(p.area[rows].sum())
             if 0.0 < landed_guess < float(power.mean()):
                 s.power_per_ray *= landed_guess / float(power.mean())
-        per_half = np.ceil(0.5 * source.scale_irradiance() * p.area[rows] / s.power_per_ray)
+        # a receiver takes the rays the light landing on it would at the run's density, its mean
+        # irradiance read as the pilot's: half the rays aim at the openings, so most of them count
+        # (a plane that saw the whole sky in the count cost office3 451M rays for its 41,710 receivers)
+        per_half = np.ceil(0.5 * source.pilot_mean * p.area[rows] / s.power_per_ray)
         counts = np.clip(per_half, SAMPLED_MIN_RAYS, SAMPLED_MAX_RAYS).astype(np.int64)
         if len(rows):
             h_a, h_b = source.patch_gather(p.corners(rows), p.normal[rows], counts, s.tracer, ray_offset(p), s.rng)
