@@ -571,11 +571,6 @@ class Sky:
                 out[rows, c] = np.bincount(owner - lo, weights=seen[:, c], minlength=len(rows)) / rays
         return out
 
-    def scale_irradiance(self) -> float:
-        """W/m^2: the irradiance of a plane that saw the whole sky and ground (a patch's gather rays
-        are in proportion to it times the patch's area, ``patch_gather``)."""
-        return self.model.diffuse_lux / EFFICACY + math.pi * self.model.ground_radiance()
-
     def patch_gather(self, corners: np.ndarray, normals: np.ndarray, counts: np.ndarray, tracer, offset: float,
                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Two independent estimates (h_a, h_b), (k,3) W/m^2 each, of the sky's and ground's mean
