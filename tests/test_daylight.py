@@ -362,6 +362,20 @@ def test_a_daylit_run_writes_daylight_factors_that_match_the_closed_form(tmp_pat
     assert day["workplane"]["DF_avg_pct"] == pytest.approx(float(np.mean(100 * fw)), rel=0.02)
 
 
+def test_a_daylit_run_keeps_max_rays(tmp_path):
+    """--max-rays holds with the sky: its gather takes at most half of the budget (coarser, every
+    receiver still gathered) and the run stops by the budget, the books closed."""
+    from dcrad.solving.passes import solve_to_accuracy
+
+    path, _ = roof_room(tmp_path, 1.0, rho=0.5)
+    _, p, _ = prepare(path, 0.5, up="y")
+    p.sources = (sky_light(p, SkyModel("uniform", E_HZ)),)
+    solver = solve_to_accuracy(p, SolverConfig(accuracy=0.02, max_rays=20_000, seed=1))
+    assert solver.stats.rays <= 20_000 * 1.01 and solver.stats.stopped_by == "ray_budget"
+    assert abs(solver.ledger.closure()) < 1e-9
+    assert any("coarsened" in c.text for c in solver.choices)
+
+
 @pytest.mark.parametrize("flags,words", [
     (["--sky", "overcast"], "unknown sky"),
     (["--sky", "iso:16"], "unknown sky"),

@@ -48,9 +48,11 @@ GATHER_STOPPED = ("direct gather stopped before it finished (a stop request): no
 #: (``gather_source``): they set the total's noise (under 0.2% of the power at this count when
 #: a tenth of it escapes), not where it lands
 SOURCE_LANDING_RAYS = 1 << 18
-#: fewest shadow rays per receiver of a direct gather coarsened to fit --max-rays: below about 16
 #: rays a half a receiver gathers a sampled source's light with (``gather_sampled``), at least and at most
 SAMPLED_MIN_RAYS, SAMPLED_MAX_RAYS = 8, 1 << 16
+#: share of --max-rays a sampled source's gather may take (the shooting of what it lands needs the rest)
+SAMPLED_BUDGET_SHARE = 0.5
+#: fewest shadow rays per receiver of a direct gather coarsened to fit --max-rays: below about 16
 #: the exact gather's own floor (its pilot, a ray a half per receiver-light pair) dominates (the
 #: office: 271k rays at 4, 276k at 8, 304k at 16, 611k at 32; Cornell 97k, 199k, 405k, 816k)
 MIN_BUDGET_SHADOW = 16
@@ -126,6 +128,11 @@ class DirectPhase:
         # (a plane that saw the whole sky in the count cost office3 451M rays for its 41,710 receivers)
         per_half = np.ceil(0.5 * source.pilot_mean * p.area[rows] / s.power_per_ray)
         counts = np.clip(per_half, SAMPLED_MIN_RAYS, SAMPLED_MAX_RAYS).astype(np.int64)
+        cap = SAMPLED_BUDGET_SHARE * s.budget.left() if s.config.max_rays else math.inf
+        if 2 * counts.sum() > cap:  # under --max-rays: coarser, every receiver still gathered
+            counts = np.maximum((counts * (cap / (2 * counts.sum()))).astype(np.int64), 1)
+            s.choices.add("budget", f"{source.name}: its gather coarsened to {int(2 * counts.sum()):,} rays to fit "
+                                    f"--max-rays ({SAMPLED_BUDGET_SHARE:g} of what the budget left)")
         if len(rows):
             h_a, h_b = source.patch_gather(p.corners(rows), p.normal[rows], counts, s.tracer, ray_offset(p), s.rng)
         else:  # nothing reflects (a black room): all of it is booked escaped
