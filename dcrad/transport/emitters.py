@@ -3,8 +3,8 @@
 Two kinds of light reach dcrad's solution.  Emitting surfaces (``Ke``, glTF emissive) are
 patches with an exitance E: they sit in the patch table, the shooting shoots their unshot
 power like any patch's, and the direct gather reads their outlines (lights.py, direct.py).
-Everything else (a luminaire of a photometric file, a point or spot light, later the sky and the
-sun) is an ``Emitter``: an object that says how much it emits, sends its light as rays, and gives
+Everything else (a luminaire of a photometric file, a point or spot light, the sky and the sun of
+sky.py) is an ``Emitter``: an object that says how much it emits, sends its light as rays, and gives
 the exact direct irradiance it puts on any point.  What asks them:
 
 * ``Solver`` books their power as emitted and spends it once, at the start of a run, before the
@@ -19,8 +19,10 @@ the exact direct irradiance it puts on any point.  What asks them:
 Their exact direct light is the run's direct light, as the emitting patches' gathered light is: in
 accuracy mode a run follows the final plan with them (``DirectPhase.sources_only``; not when a
 source had to be shot).  A new kind of emitter implements the three methods below and touches
-nothing else.  They run on every path: in one process, shared by workers and divided (a source
-belongs to the subscene holding it, which shoots it first; source_wire.py carries them to workers).
+nothing else.  One whose direct light has no exact form (the sky) says ``exact = False`` and gives
+``patch_gather`` and ``pilot``: DirectPhase gathers it in two sampled halves instead.  They run on
+every path: in one process, shared by workers and divided (a source belongs to the subscene holding
+it, which shoots it first; source_wire.py carries them to workers), the sky divided excepted.
 """
 
 from __future__ import annotations

@@ -22,18 +22,18 @@ one, is a surface like any other and hides this one where it lies.)
 altitude alpha and azimuth (compass degrees from north, clockwise: east 90), given or computed
 from a site, a date and a time (astral, NOAA's solar equations).
 
-How they light the model.  Everything outside reaches it through the faces of its bounding box:
-the sky emitter's rays start on the box's faces (slightly outside the model) with the radiance of
-their direction, the faces and directions drawn in proportion to the flux through each (a table of
-``GRID`` equal solid angles), and go in: rays that meet the model's outside light it (and are
-booked absorbed or on back faces), rays through an opening or a pane light the inside, rays that
-miss everything leave again (booked escaped).  The sky has no exact direct gather (its light on a
-point is an integral over the openings it sees), so its light is shot, with the solver's noise
-estimate following it (``exact = False``: DirectPhase shoots it in every run); the lux of black
-surfaces and of the work plane take its direct light from ``RAYS_PER_POINT`` cosine-distributed
-rays a point that read the sky or the ground where they leave the model (through panes, times
-tau).  The sun's direct light is exact (a shadow ray a point, through panes times tau), so it is
-gathered like a luminaire's.
+How they light the model.  The sky's direct light is an integral over the openings a point sees,
+so it has no exact gather: every receiver gathers it (``patch_gather``, DirectPhase.gather_sampled)
+with rays from all over it in two independent halves (its noise is in the estimate), half of them
+cosine-distributed and half aimed at the openings, which a pilot learns (``Portals``: where the
+rays that leave the model cross its bounding box), weighed by both densities (the balance
+heuristic).  The books hold the light that lands as the sky's emitted power.  Black surfaces and
+the work plane read it with the same estimator at points (``irradiance``, seeded by the run,
+``attune``).  With ``--no-direct`` it is shot instead (``rays``): from the bounding box's faces,
+face and direction drawn by the flux through each (a table of ``GRID`` equal solid angles); rays
+that meet the model's outside are booked there, and most of a small opening's rays are.  The
+sun's direct light is exact (a shadow ray a point, through panes times tau), gathered like a
+luminaire's.
 
 Frames: dcrad is Y-up inside.  East is the input file's +X (its +Y when the file is X-up) and north
 is up x east: for a Z-up file +Y, for a Y-up file -Z, the architectural conventions (Radiance: +X
