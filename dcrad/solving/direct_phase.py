@@ -128,7 +128,8 @@ class DirectPhase:
         # (a plane that saw the whole sky in the count cost office3 451M rays for its 41,710 receivers)
         per_half = np.ceil(0.5 * source.pilot_mean * p.area[rows] / s.power_per_ray)
         counts = np.clip(per_half, SAMPLED_MIN_RAYS, SAMPLED_MAX_RAYS).astype(np.int64)
-        cap = SAMPLED_BUDGET_SHARE * s.budget.left() if s.config.max_rays else math.inf
+        left = s.budget.left()
+        cap = SAMPLED_BUDGET_SHARE * left if left is not None else math.inf
         if 2 * counts.sum() > cap:  # under --max-rays: coarser, every receiver still gathered
             counts = np.maximum((counts * (cap / (2 * counts.sum()))).astype(np.int64), 1)
             s.choices.add("budget", f"{source.name}: its gather coarsened to {int(2 * counts.sum()):,} rays to fit "
