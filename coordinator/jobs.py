@@ -340,8 +340,10 @@ class JobManager:
                        mem: MemoryLog, strategy: Strategy) -> None:
         """The job divided into subscenes on the workers (``runs.Divided`` on ``WorkersBackend``)."""
         if any(getattr(s, "outside", False) for s in patches.sources):
-            raise DcradError("daylight (--sky) runs shared on the workers, not divided: a subscene cannot tell "
-                             "whether a line of sight leaves the model (drop --subscenes)")
+            raise DcradError("daylight (--sky) cannot run divided: a subscene cannot tell whether a line of sight "
+                             "leaves the model; it runs shared unless --subscenes asks otherwise or the scene has "
+                             "glass and emitting surfaces (a shared run then has no final plan): solve it in one "
+                             "process (--workers 0)")
         glass = opaque_for(patches, "divided")  # shared runs carry the panes; subscenes do not yet
         if glass is not None:
             scene.warnings.append(glass)
