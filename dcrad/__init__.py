@@ -12,6 +12,8 @@ The public API, for use from Python (the ``dcrad`` command and the gRPC services
     What those return and take (``SolverConfig``'s fields are ``solve``'s ``settings``).
 ``PointSource``
     A point light with an intensity distribution, for ``solve``'s ``sources`` (emitters.py).
+``DaylightSpec``
+    The sky, the sun and the ground outside, for ``solve``'s ``sky`` (transport/sky.py).
 ``DcradError``, ``SceneError``, ``ConfigError``
     The errors: every error dcrad raises on bad input is a ``DcradError``.
 
@@ -49,9 +51,10 @@ if TYPE_CHECKING:
     from dcrad.io.scene import Scene
     from dcrad.meshing.patches import Patches
     from dcrad.transport.emitters import PointSource
+    from dcrad.transport.sky import DaylightSpec
 
-__all__ = ["load", "solve", "Result", "Scene", "Patches", "Estimate", "SolverConfig", "PointSource", "DcradError",
-           "SceneError", "ConfigError"]
+__all__ = ["load", "solve", "Result", "Scene", "Patches", "Estimate", "SolverConfig", "PointSource", "DaylightSpec",
+           "DcradError", "SceneError", "ConfigError"]
 
 
 def __getattr__(name: str) -> Any:
@@ -71,6 +74,8 @@ def __getattr__(name: str) -> Any:
         from dcrad.config import SolverConfig as value
     elif name == "PointSource":
         from dcrad.transport.emitters import PointSource as value
+    elif name == "DaylightSpec":
+        from dcrad.transport.sky import DaylightSpec as value
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value

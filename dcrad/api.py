@@ -29,6 +29,7 @@ from dcrad.meshing.patches import Patches
 from dcrad.runs import RunHooks, Single
 from dcrad.transport.emitters import Emitter
 from dcrad.transport.luminaires import load_schedule
+from dcrad.transport.sky import DaylightSpec, daylight_sources
 
 __all__ = ["Result", "load", "solve"]
 
@@ -77,7 +78,8 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
           patch_size: float | None = None, *, scale: float = 1.0, up: str | None = None, two_sided: bool = False,
           workplane: float = 0.0, width: int = 640, height: int = 480,
           on_progress: Callable[[Any], None] | None = None, should_stop: Callable[[], bool] | None = None,
-          sources: Sequence[Emitter] = (), luminaires: str | os.PathLike | None = None, **settings: Any) -> Result:
+          sources: Sequence[Emitter] = (), luminaires: str | os.PathLike | None = None,
+          sky: str | DaylightSpec | None = None, **settings: Any) -> Result:
     """Solve a scene in this process (one subscene: no partition, no workers) and return a ``Result``.
 
     scene_or_path : a ``Scene`` (``dcrad.load``) or a scene file's path
@@ -100,6 +102,9 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
     luminaires    : a luminaire schedule (JSON: photometric files placed in the scene file's own
                     coordinates and units, ``luminaires.load_schedule``), lighting the scene beside
                     ``sources``; the report gains a ``luminaires`` section
+    sky           : daylight from outside: a sky's name ("uniform", "cie-overcast", "iso:N", ...) or a
+                    ``DaylightSpec`` (the sun, the site and time, the illuminances, the ground), as
+                    ``dcrad solve --sky``; with ``out`` the outputs gain the daylight factors
     settings      : any other ``SolverConfig`` field by name (``seed=3``, ``time_limit=10``, ...)
 
     Raises ``SceneError`` for a bad scene file and ``ConfigError`` for a bad setting.
@@ -109,6 +114,9 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
         raise ConfigError(f"dcrad.solve: unknown setting(s) {', '.join(unknown)}: the keywords after patch_size "
                           f"are those of dcrad.solve and the fields of dcrad.SolverConfig")
     config = SolverConfig(accuracy=accuracy, **settings)
+    daylight = DaylightSpec(sky) if isinstance(sky, str) else sky
+    if daylight is not None:
+        daylight.check()
     given = scene_or_path if isinstance(scene_or_path, Scene) else None
     t0 = time.perf_counter()
     phases: dict = {}
@@ -116,7 +124,8 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
         scene_or_path if given is None else given.path, patch_size, scale, up, two_sided, timings=phases,
         loaded=None if given is None else (given, 0.0), workplane=workplane,
         # the file's own lights (glTF) first, then these: the mesh is refined for them too
-        sources=lambda sc: (*sources, *(load_schedule(luminaires, sc, scale) if luminaires is not None else ())))
+        sources=lambda sc: (*sources, *(load_schedule(luminaires, sc, scale) if luminaires is not None else ()),
+                            *(daylight_sources(daylight, sc) if daylight is not None else ())))
     timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
     single = Single()
     books = single.run(patches, config, RunHooks(should_stop=should_stop, on_batch=on_progress), timings)

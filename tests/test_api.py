@@ -111,7 +111,7 @@ def test_import_dcrad_is_cheap_and_solve_stays_the_function():
 
 def test_all_lists_the_api():
     assert set(dcrad.__all__) == {"load", "solve", "Result", "Scene", "Patches", "Estimate", "SolverConfig",
-                                  "PointSource", "DcradError", "SceneError", "ConfigError"}
+                                  "PointSource", "DaylightSpec", "DcradError", "SceneError", "ConfigError"}
     from dcrad.estimate.noise import Estimate
     from dcrad.io.scene import Scene
     from dcrad.meshing.patches import Patches

@@ -362,6 +362,23 @@ def test_a_daylit_run_writes_daylight_factors_that_match_the_closed_form(tmp_pat
     assert day["workplane"]["DF_avg_pct"] == pytest.approx(float(np.mean(100 * fw)), rel=0.02)
 
 
+def test_the_api_takes_a_sky(tmp_path):
+    """dcrad.solve(..., sky=...) lights the scene as `dcrad solve --sky` does: a name or a
+    DaylightSpec; the outputs gain the daylight factors; a bad sky is a ConfigError."""
+    import dcrad
+
+    path, _ = roof_room(tmp_path, 4.0, rho=0.5)
+    result = dcrad.solve(path, tmp_path / "out", accuracy=0.05, patch_size=0.5, up="y", sky="cie-overcast",
+                         width=32, height=24)
+    assert result.report["daylight"]["sky"]["sky"] == "cie-overcast"
+    assert "patch_daylight_factor" in np.load(tmp_path / "out" / "radiosity.npz")
+    spec = dcrad.DaylightSpec("clear", sun_altitude=50.0, sun_azimuth=200.0)
+    sunny = dcrad.solve(path, accuracy=0.05, patch_size=0.5, up="y", sky=spec)
+    assert sunny.report["ledger"]["closure"] < 1e-9 and sunny.estimate.rms_refl <= 0.05
+    with pytest.raises(ConfigError, match="unknown sky"):
+        dcrad.solve(path, accuracy=0.05, patch_size=0.5, up="y", sky="cloudy")
+
+
 def test_a_daylit_run_keeps_max_rays(tmp_path):
     """--max-rays holds with the sky: its gather takes at most half of the budget (coarser, every
     receiver still gathered) and the run stops by the budget, the books closed."""
