@@ -28,8 +28,7 @@ from dcrad.io.scene import Scene, load_scene
 from dcrad.meshing.patches import Patches
 from dcrad.runs import RunHooks, Single
 from dcrad.transport.emitters import Emitter
-from dcrad.transport.luminaires import load_schedule
-from dcrad.transport.sky import DaylightSpec, daylight_sources
+from dcrad.transport.sky import DaylightSpec
 
 __all__ = ["Result", "load", "solve"]
 
@@ -117,6 +116,7 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
     daylight = DaylightSpec(sky) if isinstance(sky, str) else sky
     if daylight is not None:
         daylight.check()
+    lit = pipeline.light_sources(luminaires, daylight, scale)  # as `dcrad solve` and the service
     given = scene_or_path if isinstance(scene_or_path, Scene) else None
     t0 = time.perf_counter()
     phases: dict = {}
@@ -124,8 +124,7 @@ def solve(scene_or_path: Scene | str | os.PathLike, out: str | os.PathLike | Non
         scene_or_path if given is None else given.path, patch_size, scale, up, two_sided, timings=phases,
         loaded=None if given is None else (given, 0.0), workplane=workplane,
         # the file's own lights (glTF) first, then these: the mesh is refined for them too
-        sources=lambda sc: (*sources, *(load_schedule(luminaires, sc, scale) if luminaires is not None else ()),
-                            *(daylight_sources(daylight, sc) if daylight is not None else ())))
+        sources=lambda sc: (*sources, *(lit(sc) if lit is not None else ())))
     timings = {"load_and_mesh_s": time.perf_counter() - t0, **phases}
     single = Single()
     books = single.run(patches, config, RunHooks(should_stop=should_stop, on_batch=on_progress), timings)

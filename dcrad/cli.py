@@ -143,7 +143,7 @@ def cmd_solve(args) -> int:
     previous = _catch(stop)
     try:
         if args.workers is None:  # the default: divide only where it pays
-            args.workers, choice, loaded = _auto_workers(args, Path(args.out))
+            args.workers, choice, loaded = _auto_workers(args, Path(args.out), daylight)
     finally:
         _restore(previous)
     check_workers(args.workers)
@@ -152,7 +152,7 @@ def cmd_solve(args) -> int:
     config = _config(args)
     out = Path(args.out)
     if args.workers > 0:
-        code = _solve_embedded(args, config, out)
+        code = _solve_embedded(args, config, out, daylight)
         _note_choice(out, choice)
         return code
     rules = resolve(config)
@@ -189,7 +189,7 @@ def cmd_solve(args) -> int:
     return 0
 
 
-def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
+def _auto_workers(args, out: Path, daylight=None) -> tuple[int, Choice, tuple | None]:
     """--workers by default: from the scene's unknowns (meshed here, or estimated when too large to
     mesh) and the CPUs; and, when it chooses this process, (scene, load seconds, path, patches or
     None) for the solve to reuse (a
@@ -219,13 +219,13 @@ def _auto_workers(args, out: Path) -> tuple[int, Choice, tuple | None]:
         # the unknowns, not the patches: a run's rays follow them (clusters share one B), and
         # only a run in this process settles its clusters (passes.settle); the mesh is handed on
         # the luminaires light it before meshing, so that the refinement follows their light too
-        extra = tuple(light_sources(args.luminaires, daylight_from_args(args), args.scale)(scene)) \
-            if args.luminaires is not None or args.sky is not None else ()
+        lit = light_sources(args.luminaires, daylight, args.scale)
+        extra = tuple(lit(scene)) if lit is not None else ()
         patches = scene.patches(size, adapt=not (args.patch_size and args.patch_size > 0), sources=extra)
         n = patches.units
     strategy = local(n, os.cpu_count() or 1, gathers(config, n))
     workers, choice = strategy.workers, strategy.why
-    if args.sky is not None and workers > 0:
+    if daylight is not None and workers > 0:
         # a daylit run shares its workers only when asked to (--workers N): it was measured in one process
         workers, choice = 0, Choice("workers", "solved in this process: daylight (--sky) runs here by default "
                                                "(--workers N shares it)")
@@ -323,7 +323,7 @@ def _summary(report: dict, out: Path) -> None:
     print(f"dcrad: wrote {', '.join(report['outputs'].values())}, report.json in {out}")
 
 
-def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
+def _solve_embedded(args, config: SolverConfig, out: Path, daylight=None) -> int:
     """`dcrad solve --workers N`: a coordinator and N workers on loopback, then submit/watch/fetch."""
     if args.planes:
         raise DcradError("--planes works in process only (--workers 0)")
@@ -331,12 +331,12 @@ def _solve_embedded(args, config: SolverConfig, out: Path) -> int:
     stop = _Interrupt(before="while the workers started and the coordinator loaded and meshed the scene")
     previous = _catch(stop)
     try:
-        return _run_embedded(args, config, out, stop)
+        return _run_embedded(args, config, out, stop, daylight)
     finally:
         _restore(previous)
 
 
-def _run_embedded(args, config: SolverConfig, out: Path, stop: "_Interrupt") -> int:
+def _run_embedded(args, config: SolverConfig, out: Path, stop: "_Interrupt", daylight=None) -> int:
     import json
 
     from coordinator import client
@@ -363,7 +363,7 @@ def _run_embedded(args, config: SolverConfig, out: Path, stop: "_Interrupt") -> 
                 divide["subscenes"] = None
             try:
                 job = client.submit(cluster.address, path, solver, divide, (args.width, args.height),
-                                    luminaires=args.luminaires, daylight=daylight_from_args(args))
+                                    luminaires=args.luminaires, daylight=daylight)
             except client.grpc.RpcError as exc:
                 raise DcradError(client.rpc_message(exc, cluster.address)) from None
             if cluster.web_url:

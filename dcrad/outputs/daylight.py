@@ -24,8 +24,8 @@ def sky_of(patches):
     return None
 
 
-def factor(lux: np.ndarray, model) -> np.ndarray:
-    """Daylight factor, percent, of illuminance ``lux`` under ``model``."""
+def factor(lux, model) -> np.ndarray:
+    """Daylight factor, percent, of illuminance ``lux`` (lux, an array or a number) under ``model``."""
     return np.asarray(lux, np.float64) * (100.0 / model.horizontal_lux())
 
 
@@ -40,7 +40,7 @@ def section(patches, surfaces: list[dict] | None, grid: dict | None) -> dict | N
     model = sky_of(patches)
     if model is None:
         return None
-    scale = 100.0 / model.horizontal_lux()
+    scale = float(factor(1.0, model))
     others = [getattr(s, "name", "?") for s in patches.sources
               if not getattr(s, "outside", False)]
     sun = any(getattr(s, "outside", False) and getattr(s, "exact", False) for s in patches.sources)
@@ -63,5 +63,5 @@ def section(patches, surfaces: list[dict] | None, grid: dict | None) -> dict | N
 def picture_scale(patches) -> float | None:
     """Lux -> DF percent for the daylight-factor picture (None: not daylit)."""
     model = sky_of(patches)
-    return None if model is None else 100.0 / model.horizontal_lux()
+    return None if model is None else float(factor(1.0, model))
 

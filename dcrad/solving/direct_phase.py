@@ -118,8 +118,9 @@ class DirectPhase:
             rows = rows[~p.glazing.mask[rows]]
         # the books hold what lands, not all the light into the bounding box (30x more for a side-lit
         # room): the run's density and its unshot share (the stop rule's "all shot") are of that
+        corners = p.corners(rows)
         if len(rows):
-            guess = source.pilot(p.corners(rows).mean(axis=1), p.normal[rows], s.tracer, ray_offset(p))
+            guess = source.pilot(corners.mean(axis=1), p.normal[rows], s.tracer, ray_offset(p))
             landed_guess = guess * float(p.area[rows].sum())
             if 0.0 < landed_guess < float(power.mean()):
                 s.power_per_ray *= landed_guess / float(power.mean())
@@ -135,22 +136,18 @@ class DirectPhase:
             s.choices.add("budget", f"{source.name}: its gather coarsened to {int(2 * counts.sum()):,} rays to fit "
                                     f"--max-rays ({SAMPLED_BUDGET_SHARE:g} of what the budget left)")
         if len(rows):
-            h_a, h_b = source.patch_gather(p.corners(rows), p.normal[rows], counts, s.tracer, ray_offset(p), s.rng)
+            h_a, h_b = source.patch_gather(corners, p.normal[rows], counts, s.tracer, ray_offset(p), s.rng)
         else:  # nothing reflects (a black room): all of it is booked escaped
             h_a = h_b = np.zeros((0, 3))
         area = p.area[rows, None]
         received, received_a = 0.5 * (h_a + h_b) * area, 0.5 * h_a * area
         keep = np.flatnonzero(received.any(axis=1))
         got = received[keep]
-        magnitude = np.abs(got)
         landed = got.sum(axis=0)
         if np.all(landed > 0):  # it emitted, in the books, what it landed: nothing escapes
             s.ledger.emitted = s.ledger.emitted + landed - power
             power = landed
-        tally = DirectTally(got, rows[keep], power - landed, np.zeros(3), np.zeros(len(s.back_by_obj)),
-                            np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
-                            (magnitude * p.rho[rows[keep]]).sum(axis=0), np.abs(power - landed), received_a[keep],
-                            int(2 * counts.sum()))
+        tally = self._gathered(got, rows[keep], power - landed, received_a[keep], int(2 * counts.sum()))
         s.commit(None, tally, shot=power[None, :])
         self.sources_shot = True
         if len(rows):
@@ -158,6 +155,16 @@ class DirectPhase:
                                     f"{int(2 * counts.sum()):,} rays ({int(counts.min())} to {int(counts.max())} a "
                                     f"half a receiver), two independent halves: its noise is in the estimate")
         return s.counted(1, int(2 * counts.sum()))
+
+    def _gathered(self, got: np.ndarray, hit: np.ndarray, escaped: np.ndarray, got_a: np.ndarray,
+                  rays: int) -> DirectTally:
+        """The tally of a source's gather: ``got`` (k,3) W on the receivers ``hit``, ``escaped`` (3,)
+        W booked as leaving (its magnitude is the return tallies' loss), half A's part ``got_a``."""
+        s = self.solver
+        magnitude = np.abs(got)
+        return DirectTally(got, hit, escaped, np.zeros(3), np.zeros(len(s.back_by_obj)), np.zeros(0, np.int64),
+                           np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
+                           (magnitude * s.patches.rho[hit]).sum(axis=0), np.abs(escaped), got_a, rays)
 
     def source_rays(self, source) -> int:
         """Rays ``source`` takes shot at the run's power per ray (at least the shots' floor)."""
@@ -207,10 +214,7 @@ class DirectPhase:
         landed_a = shot.received_a.sum(axis=0) if shot.received_a is not None else 0.5 * landed
         share_a = np.where(landed != 0, landed_a / np.where(landed != 0, landed, 1.0), 0.5)
         got = received[keep]
-        magnitude = np.abs(got)
-        gathered = DirectTally(got, rows[keep], np.zeros(3), np.zeros(3), np.zeros(len(s.back_by_obj)),
-                               np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), magnitude.sum(axis=0),
-                               (magnitude * p.rho[rows[keep]]).sum(axis=0), np.zeros(3), got * share_a, shadow)
+        gathered = self._gathered(got, rows[keep], np.zeros(3), got * share_a, shadow)
         tally = rescale_to_landed(gathered, shot, p)
         if tally is None:  # its rays landed light where no patch faces it: keep the rays' own result
             s.commit(batch, shot)

@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dcrad.errors import ConfigError
+from dcrad.estimate.noise import half_mask
 from dcrad.outputs.photometry import EFFICACY
 from dcrad.transport.emitters import half_weights, visibility
 from dcrad.transport.rays import MISS
@@ -182,7 +183,7 @@ class SkyModel:
                                   f"needs it above (altitude > 0)")
         if needs_sun(self.sky) and self.sun is None:
             raise ConfigError(f"--sky {self.sky} needs the sun's position: give --sun-altitude and --sun-azimuth, "
-                              f"or --site, --date and --time")
+                              f"or --site and --time")
         if self.sun_lux > 0 and self.sun is None:
             raise ConfigError("--sun-illuminance needs the sun's position: give --sun-altitude and --sun-azimuth, "
                               "or --site and --time")
@@ -286,9 +287,10 @@ class _Box:
         self.reach = 2.0 * float(np.linalg.norm(ext))
 
     def points(self, face: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Uniform points on the faces ``face`` (m,) from ``u`` (m,2)."""
+        """Points on the faces ``face`` (m,) at ``u`` (m,2) in [0,1)^2 of the face's two other axes
+        (``_OTHER``): uniform for uniform ``u``."""
         axis = face // 2
-        other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+        other = _OTHER[axis]
         rows = np.arange(len(face))
         ext = self.hi - self.lo
         out = np.empty((len(face), 3))
@@ -297,13 +299,12 @@ class _Box:
         out[rows, axis] = np.where(face % 2 == 1, self.hi[axis], self.lo[axis])
         return out
 
-    def to_wire(self) -> dict:
-        return {"lo": self.lo.tolist(), "hi": self.hi.tolist()}
+
+#: the two axes a face of the box spans, by the axis it faces along
+_OTHER = np.array([[1, 2], [0, 2], [0, 1]])
 
 
 def _halves(n: int, rng: np.random.Generator) -> np.ndarray | None:
-    from dcrad.estimate.noise import half_mask  # noqa: PLC0415  (as emitters.py)
-
     half = half_mask(np.array([n]), rng)
     return half if 0 < int(half.sum()) < n else None
 
@@ -342,11 +343,9 @@ class Portals:
         self.weight = np.zeros(6 * cells * cells)
         self.count = np.zeros(6 * cells * cells)
         self.cdf: np.ndarray | None = None
-        self._other = np.array([[1, 2], [0, 2], [0, 1]])
         ext = box.hi - box.lo
         #: (6,) each face's cell area
-        self.cell_area = np.array([ext[self._other[f // 2, 0]] * ext[self._other[f // 2, 1]]
-                                   for f in range(6)]) / cells ** 2
+        self.cell_area = np.array([ext[_OTHER[f // 2, 0]] * ext[_OTHER[f // 2, 1]] for f in range(6)]) / cells ** 2
 
     def exit(self, x: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(face (m,), cell (m,), t (m,)): where rays from ``x`` (inside the box) along unit ``d`` leave it."""
@@ -358,7 +357,7 @@ class Portals:
         t = np.maximum(t_axis[rows, axis], 0.0)
         face = 2 * axis + (d[rows, axis] > 0)
         q = x + t[:, None] * d
-        o = self._other[axis]
+        o = _OTHER[axis]
         ext = self.box.hi - self.box.lo
         c = self.cells
         i = np.clip(((q[rows, o[:, 0]] - self.box.lo[o[:, 0]]) / ext[o[:, 0]] * c).astype(np.int64), 0, c - 1)
@@ -394,14 +393,7 @@ class Portals:
         c = self.cells
         face, rest = cell // (c * c), cell % (c * c)
         i, j = rest // c, rest % c
-        axis = face // 2
-        o = self._other[axis]
-        rows = np.arange(len(x))
-        ext = self.box.hi - self.box.lo
-        q = np.empty((len(x), 3))
-        q[rows, o[:, 0]] = self.box.lo[o[:, 0]] + ext[o[:, 0]] * (i + u[:, 1]) / c
-        q[rows, o[:, 1]] = self.box.lo[o[:, 1]] + ext[o[:, 1]] * (j + u[:, 2]) / c
-        q[rows, axis] = np.where(face % 2 == 1, self.box.hi[axis], self.box.lo[axis])
+        q = self.box.points(face, np.column_stack([(i + u[:, 1]) / c, (j + u[:, 2]) / c]))
         d = q - x
         return d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
 
