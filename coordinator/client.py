@@ -376,9 +376,6 @@ def _follow(address: str, job_id: str, tol: float, force: bool) -> int:
 def cmd_submit(args) -> int:
     address = resolve_address(args.coordinator)
     daylight = daylight_from_args(args)  # read first: a bad daylight flag is named as such
-    if daylight is not None and args.subscenes > 1:
-        raise ConfigError("--sky runs shared on the workers, not divided: drop --subscenes (a subscene cannot tell "
-                          "whether a line of sight leaves the model)")
     solver = from_args(SolverConfig, args).as_dict() | scene_values(args)
     # subscenes 0 travels as 0: the coordinator makes one per registered worker
     divide = divide_from_args(args, max(args.subscenes, 1)).as_dict() | {"subscenes": args.subscenes}

@@ -41,7 +41,6 @@ from dcrad.runs import Divided, RunHooks, Shared
 from dcrad.settings import from_pb
 from dcrad.solving.accuracy import resolve
 from dcrad.solving.strategy import Strategy, on_workers
-from dcrad.transport.optics import opaque_for
 from dcrad.transport.sky import DaylightSpec
 from dcrad.transport.source_wire import sources_table
 from dcrad.v1 import dcrad_pb2 as pb
@@ -339,14 +338,6 @@ class JobManager:
     def _solve_divided(self, job: Job, scene, patches, size: float, config: SolverConfig, timings: dict,
                        mem: MemoryLog, strategy: Strategy) -> None:
         """The job divided into subscenes on the workers (``runs.Divided`` on ``WorkersBackend``)."""
-        if any(getattr(s, "outside", False) for s in patches.sources):
-            raise DcradError("daylight (--sky) cannot run divided: a subscene cannot tell whether a line of sight "
-                             "leaves the model; it runs shared unless --subscenes asks otherwise or the scene has "
-                             "glass and emitting surfaces (a shared run then has no final plan): solve it in one "
-                             "process (--workers 0)")
-        glass = opaque_for(patches, "divided")  # shared runs carry the panes; subscenes do not yet
-        if glass is not None:
-            scene.warnings.append(glass)
         spec = job.spec
         divide = self._divide(spec, strategy.subscenes)
         divide = DivideConfig(**job.divide) if job.resume is not None and job.divide else divide

@@ -134,9 +134,6 @@ def cmd_solve(args) -> int:
 
     check_image_size(args.width, args.height)
     daylight = daylight_from_args(args)  # read (and refused) before the scene loads
-    if daylight is not None and (args.planes or args.subscenes > 1):
-        raise ConfigError("--sky runs in one process or shared on workers, not divided: drop --subscenes and "
-                          "--planes (a subscene cannot tell whether a line of sight leaves the model)")
     choice, loaded = None, None
     # caught from the start: a stop while the scene loads and meshes ends the command at once
     stop = _Interrupt(before="while the scene loaded and meshed")
@@ -230,9 +227,10 @@ def _auto_workers(args, out: Path, daylight=None) -> tuple[int, Choice, tuple | 
         workers, choice = 0, Choice("workers", "solved in this process: daylight (--sky) runs here by default "
                                                "(--workers N shares it)")
     elif scene.tau is not None and workers > 0:
-        # glass runs in one process for now (optics.check_single)
-        workers, choice = 0, Choice("workers", "solved in this process: the scene's glass (ideal specular "
-                                               "transmitters, optics.py) runs in one process for now")
+        # glass by default in one process, where it was measured (--workers N shares or divides it)
+        workers, choice = 0, Choice("workers", "solved in this process: a scene with glass (ideal specular "
+                                               "transmitters, optics.py) runs here by default (--workers N "
+                                               "shares or divides it)")
     if workers > 0 and fresh:  # the workers' run writes its own copy; out/ keeps only what it wrote
         shutil.rmtree(out / "scene", ignore_errors=True)
     return workers, choice, (scene, seconds, path, patches) if workers == 0 else None

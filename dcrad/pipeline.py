@@ -30,7 +30,7 @@ from dcrad.outputs import daylight, photometry, render
 from dcrad.outputs.report import TIMINGS, RunBooks, run_report, write_json
 from dcrad.runs import Divided, RunHooks, Single
 from dcrad.solving.solver import Stats
-from dcrad.transport import luminaires, optics, punctual, sky
+from dcrad.transport import luminaires, punctual, sky
 from dcrad.transport.rays import Tracer
 
 __all__ = ["default_patch_size", "prepare", "write_outputs", "write_pictures", "solve_to", "resolve_scene",
@@ -445,7 +445,9 @@ def finish_run(out: Path | None, scene, books: RunBooks, scene_values: dict, wid
     """
     settings = books.config.as_dict() | scene_values
     t0 = time.perf_counter()
-    lit = bool(np.any(books.ledger.emitted))  # light sources that are not patches light a scene file without emitters
+    # light sources that are not patches light a scene file without emitters (a divided run books the
+    # sky's light as what landed on what reflects: none in a black room, which the sky lights all the same)
+    lit = bool(np.any(books.ledger.emitted)) or any(np.any(s.power()) for s in books.patches.sources)
     warnings = [w for w in scene.warnings if not (lit and w == NO_EMITTERS)] + books.warnings()
     size = float(settings.get("patch_size_m") or 0.0)
     auto = scene.element_choice if scene.element_choice is not None and scene.element_choice[0] == size else None
@@ -549,9 +551,6 @@ def solve_to(
     timings = {"load_and_mesh_s": t_load, **phases}
     strategy: Single | Divided
     if divide is not None and divide.subscenes > 1:
-        glass = optics.opaque_for(patches, "divided")
-        if glass is not None:
-            scene.warnings.append(glass)
         if on_progress is not None:
             hooks.on_barrier = lambda run: on_progress(_DividedView(run))
         strategy = Divided(divide, planes=scene.planes_to_internal(planes))

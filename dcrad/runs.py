@@ -28,6 +28,7 @@ import numpy as np
 from dcrad.config import DivideConfig, SolverConfig, unused_divide_note
 from dcrad.division.books import divided_books
 from dcrad.division.divide import DividedRun, SequentialExecutor, SubsceneSpec, assemble, run_divided, subscene_specs
+from dcrad.division.outside import gather_outside
 from dcrad.division.subscene import SubsceneHandle
 from dcrad.meshing.patches import Patches
 from dcrad.outputs.report import RunBooks
@@ -157,7 +158,10 @@ class Divided:
         hooks = hooks or RunHooks()
         timings = dict(timings or {})
         t0 = time.perf_counter()
-        specs, boundaries, parents, part = subscene_specs(patches, config, self.divide, planes=self.planes)
+        # the sky and the sun: gathered on the whole scene before it is cut (division/outside.py)
+        outside = gather_outside(patches, config)
+        specs, boundaries, parents, part = subscene_specs(patches, config, self.divide, planes=self.planes,
+                                                          outside=outside)
         self.subscenes = len(specs)
         try:
             handles = self.backend.open(specs)
@@ -195,7 +199,10 @@ class Divided:
             self.backend.close(handles)
         parents.clear()  # assembled: the outputs need the patch table only
         timings["solve_s"] = run.wall_seconds
-        return divided_books(run, patches, config, boundaries, part, self.divide, timings)
+        books = divided_books(run, patches, config, boundaries, part, self.divide, timings)
+        if outside is not None:  # what the outside's gather chose, on the whole scene
+            books.choices.extend(c for c in outside.choices if c.code != "grey")
+        return books
 
 
 class Shared:

@@ -407,7 +407,6 @@ def test_a_daylit_run_keeps_max_rays(tmp_path):
     (["--sky", "uniform", "--sky-illuminance", "-3"], "--sky-illuminance"),
     (["--sky", "clear", "--site", "51.5", "--time", "2026-06-21T12:00+00:00"], "--site"),
     (["--sky", "clear", "--site", "51.5,0", "--time", "2026-06-21T12:00"], "UTC offset"),
-    (["--sky", "uniform", "--subscenes", "2"], "not divided"),
 ])
 def test_bad_daylight_flags_get_one_line_and_exit_2(tmp_path, flags, words):
     path, _ = roof_room(tmp_path, 1.0)

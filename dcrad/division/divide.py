@@ -36,6 +36,7 @@ from dcrad.division.boundary import (
     boundary_mode,
     make_boundary,
 )
+from dcrad.division.outside import OutsideLight, gather_outside
 from dcrad.division.partition import clip, partition
 from dcrad.division.placement import check_subscenes
 from dcrad.division.subscene import (
@@ -54,7 +55,6 @@ from dcrad.solving.snapshots import SnapshotStore
 from dcrad.solving.solver import Snapshot
 from dcrad.solving.stiffness import Stiffness, stiffness
 from dcrad.transport.emitters import sources_power
-from dcrad.transport.optics import check_single as check_glass
 
 __all__ = [
     "run_divided", "assemble", "DividedRun", "SequentialExecutor", "DivideConfig", "build_subscenes",
@@ -349,16 +349,21 @@ class SubsceneSpec:
                              noise=NoiseTally(p).sums())
 
 
-def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig, planes=None, boxes=None):
+def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig, planes=None, boxes=None,
+                   outside: OutsideLight | None = None):
     """subDivideScene as arrays: partition, clip, make boundaries and one SubsceneSpec per cell.
 
     No Solver and no Embree scene is built (the coordinator, which traces nothing,
-    sends these to workers).  Returns (specs, boundaries, parents, partition).
+    sends these to workers), except for light from outside the model (the sky, the sun): it is
+    gathered on the whole scene first (outside.py; ``outside``: gathered already by the caller)
+    and each cell is handed what landed on it.  Returns (specs, boundaries, parents, partition).
     """
-    check_glass(patches.glazing, "divided")
     if planes is None and boxes is None:
         check_subscenes(divide.subscenes, len(patches))
     config = resolve(config, patches.read_units)  # the job's ray density: from its patch count
+    if outside is None:
+        outside = gather_outside(patches, config)
+    others = tuple(s for s in patches.sources if not getattr(s, "outside", False))
     # balanced by light (CUT_WORK): a subscene's iterates cost in proportion to its lamps, and
     # cells of equal area differ in lamps.  Binned twins keep the area cut: by light, the cut
     # moves toward the lamps, and binned twins blur the light that crosses open space there
@@ -368,9 +373,12 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     part = partition(patches, divide.subscenes, planes=planes, boxes=boxes,
                      **({"work": work} if planes is None and boxes is None else {}))
     pieces = clip(patches, part)
-    owners = source_cells(patches.sources, part)
-    for cell, (sub, _) in zip(part.cells, pieces):
-        sub.sources = tuple(src for src, owner in zip(patches.sources, owners) if owner == cell.id)
+    owners = source_cells(others, part)
+    for i, (cell, (sub, parent)) in enumerate(zip(part.cells, pieces)):
+        lit = outside.for_cell(sub, parent, first=i == 0) if outside is not None else None
+        # the outside's light first: it is laid down before the cell's own sources are shot
+        sub.sources = ((lit,) if lit is not None else ()) + tuple(
+            src for src, owner in zip(others, owners) if owner == cell.id)
     # Portal cells must be small next to walls and doorways: re-emitted twin light
     # starts anywhere in its cell, and the part of a cell inside a wall loses it
     # to back faces (0.6 m cells: 24% too dark behind a doorway; 0.05 m: 3%).
@@ -387,7 +395,8 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
             continue
         boundaries.append(make_boundary(len(boundaries), f.axis, f.offset, lo, hi, f.side_a, f.side_b,
                                         cell_size, divide.solid))
-    emitted = float(patches.emitted_power.sum() + sources_power(patches.sources).sum())  # the sources' power too
+    # the sources' power too (the outside's: what its gather spent, not its flux into the scene's box)
+    emitted = float(patches.emitted_power.sum() + sum(sources_power(sub.sources).sum() for sub, _ in pieces))
     per_ray = emitted / config.rays_per_power if emitted > 0 else 1.0
     specs = []
     for cell, (sub, _) in zip(part.cells, pieces):

@@ -616,6 +616,7 @@ def clip(patches: Patches, part: Partition) -> list[tuple[Patches, np.ndarray]]:
             source=patches.source[parent], obj=patches.obj[parent], names=patches.names,
             radiosity=patches.radiosity[parent], unshot=patches.unshot[parent],  # gathered: copies
             twin=remap_twin(patches.twin, parent),
+            glazing=None if patches.glazing is None else patches.glazing.take(parent),
         )
         # its areas are known: a whole patch's from the table, a piece's just measured (the same
         # corners in the same order, so the numbers ``area`` would compute from ``triangles``)

@@ -153,6 +153,10 @@ class Subscene(Solver):
         faces = np.concatenate([patches.faces, len(patches.vertices) + np.arange(len(rects)).reshape(-1, 3)])
         super().__init__(patches, config, tracer=Tracer(None, vertices=np.concatenate([patches.vertices, rects]),
                                                         faces=faces))
+        # glass: a ray meets a pane and goes on with tau(theta) of its power (shoot.through_panes), to a
+        # surface or a boundary, which forwards what is left of it (the boundaries' primitives follow the
+        # patches': Glazing.panes takes them as opaque)
+        self.tracer.glazing = patches.glazing
         self.cell = cell
         #: adaptive doIterations: W of local residual below which a barrier's iterations stop
         self.local_target = local_target
@@ -345,6 +349,7 @@ class Subscene(Solver):
             return lost
         rays = tally.portal
         local = tally.portal_prim // 2
+        batch = tally.ends if tally.ends is not None else batch  # through glass: the powers that end
         points = batch.origins[rays] + tally.portal_t[:, None] * batch.dirs[rays]
         for i, b in enumerate(self.boundaries):
             sel = np.flatnonzero(local == i)
@@ -411,6 +416,9 @@ class Subscene(Solver):
         goal = max(self.local_target, share * self.local_residual()) if self.local_target > 0 else 0.0
         cap = FORWARD_CAP * self.config.batch_rays
         deadline = time.perf_counter() + plan.time_left if plan is not None and plan.time_left > 0 else None
+        while self.direct.sources_left and getattr(self.direct.sources_left[0], "gathered", False):
+            # the sky's and the sun's light, gathered on the whole scene (outside.py): laid down first
+            rays += self.direct.deposit(self.direct.sources_left.pop(0))
         if self.direct.sources_left and not self.interrupted:
             # its light sources that are not patches, shot once, first (a subscene shoots its direct
             # light: the exact gather reads only this cell's patches, and its light crosses boundaries);

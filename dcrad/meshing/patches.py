@@ -113,8 +113,8 @@ class Patches:
     #: light sources that are not patches (emitters.Emitter: point lights, luminaires); one process only
     sources: tuple = ()
     #: the panes among the patches (optics.Glazing: ideal specular transmitters, the seed's eq. 1.2);
-    #: None: no glass.  In one process and shared runs (it travels in ``table_arrays``); divided runs
-    #: take the panes as opaque (``optics.opaque_for``)
+    #: None: no glass.  On every path: it travels in ``table_arrays`` to workers, and clipping
+    #: (partition.clip) hands each piece its parent's
     glazing: Glazing | None = None
     #: what the mesh's adaptive refinement did (mesh.adapt's dict and its ``seconds``); None: not run
     adapted: dict | None = None

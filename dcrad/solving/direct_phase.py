@@ -75,6 +75,9 @@ class DirectPhase:
         self.source_light: tuple[np.ndarray, np.ndarray] | None = None
         #: a source's light was shot, not gathered: the final gather could not tell it from reflected light
         self.sources_shot = False
+        #: the tallies the sources' light was booked with, kept when a list (division/outside.py reads
+        #: the sky's and the sun's, gathered on the whole scene, to hand to the subscenes)
+        self.kept: list | None = None
 
     def shoot_sources(self) -> int:
         """Spend each light source that is not a patch (emitters.py) once, at the start of the run: its
@@ -91,13 +94,34 @@ class DirectPhase:
             attune = getattr(source, "attune", None)  # the outputs read a sampled source's light as this run
             if attune is not None:
                 attune(s.config.seed, s.config.accuracy)
-            if not s.config.direct:
+            if getattr(source, "gathered", False):  # gathered already (emitters.Gathered): laid down
+                rays += self.deposit(source)
+            elif not s.config.direct:
                 rays += self.shoot_source(source)
             elif getattr(source, "exact", True):
                 rays += self.gather_source(source)
             else:  # its direct light has no exact gather (the sky: an integral over the openings a point sees)
                 rays += self.gather_sampled(source)
         return rays
+
+    def deposit(self, source) -> int:
+        """Lay down a light gathered elsewhere (emitters.Gathered: a divided run's sky and sun, gathered on
+        the whole scene): what landed on each receiver, its half A, and what it lost, booked as this
+        run's emitted light (``__init__``) and shot; its gather's rays counted here.  No final plan:
+        its light may be a sampled estimate, as the sky's.  Returns the rays counted."""
+        s = self.solver
+        tally = self._gathered(source.received, source.rows, source.escaped, source.received_a, source.rays)
+        tally.back_faces = np.asarray(source.back_faces, np.float64)
+        tally.lost = np.abs(tally.escaped) + np.abs(tally.back_faces)
+        s.commit(None, tally, shot=np.asarray(source.power(), np.float64)[None, :])
+        self.sources_shot = True
+        return s.counted(1, source.rays)
+
+    def _book(self, batch, tally, shot=None) -> None:
+        """``Solver.commit`` of a source's light, its tally kept when ``kept`` is a list."""
+        self.solver.commit(batch, tally, shot=shot)
+        if self.kept is not None:
+            self.kept.append(tally)
 
     def gather_sampled(self, source) -> int:
         """The direct light of a source without an exact gather (the sky, ``patch_gather``), gathered
@@ -122,8 +146,11 @@ class DirectPhase:
         if len(rows):
             guess = source.pilot(corners.mean(axis=1), p.normal[rows], s.tracer, ray_offset(p))
             landed_guess = guess * float(p.area[rows].sum())
-            if 0.0 < landed_guess < float(power.mean()):
-                s.power_per_ray *= landed_guess / float(power.mean())
+            # the power per ray follows the books' emitted light, the sky's share of it now what lands
+            # (scaled by landed / flux alone, the other sources' share shrank with it: the sun's, 80x)
+            total = float(s.ledger.emitted.mean())
+            if 0.0 < landed_guess < float(power.mean()) and total > 0:
+                s.power_per_ray *= (total - float(power.mean()) + landed_guess) / total
         # a receiver takes the rays the light landing on it would at the run's density, its mean
         # irradiance read as the pilot's: half the rays aim at the openings, so most of them count
         # (a plane that saw the whole sky in the count cost office3 451M rays for its 41,710 receivers)
@@ -148,13 +175,31 @@ class DirectPhase:
             s.ledger.emitted = s.ledger.emitted + landed - power
             power = landed
         tally = self._gathered(got, rows[keep], power - landed, received_a[keep], int(2 * counts.sum()))
-        s.commit(None, tally, shot=power[None, :])
+        self._book(None, tally, shot=power[None, :])
         self.sources_shot = True
         if len(rows):
             s.choices.add("direct", f"{source.name}: its direct light gathered onto {len(rows):,} receivers with "
                                     f"{int(2 * counts.sum()):,} rays ({int(counts.min())} to {int(counts.max())} a "
                                     f"half a receiver), two independent halves: its noise is in the estimate")
         return s.counted(1, int(2 * counts.sum()))
+
+    def _landed_only(self, tally, power: np.ndarray):
+        """A source outside the model (the sun) booked as emitting what it landed, as the sky is
+        (``gather_sampled``): its light that met the envelope's outside or passed the model by never
+        entered it.  Booked as lost, it made the model look leaky to the return tallies, whose
+        estimate then took the light left unshot for a fifth of what it was (a sunlit roof opening
+        stopped 4% dark with a bias of 0.2% estimated), and set the run's density by light no ray
+        needs.  Returns (the tally, the power it emitted); the run's power per ray follows."""
+        s = self.solver
+        landed = tally.received.sum(axis=0)
+        before = float(s.ledger.emitted.sum())
+        s.ledger.emitted = s.ledger.emitted + landed - power
+        after = float(s.ledger.emitted.sum())
+        if before > 0 and after > 0:
+            s.power_per_ray *= after / before
+        tally.escaped, tally.back_faces, tally.lost = np.zeros(3), np.zeros(3), np.zeros(3)
+        tally.back_by_obj = np.zeros_like(tally.back_by_obj)
+        return tally, landed
 
     def _gathered(self, got: np.ndarray, hit: np.ndarray, escaped: np.ndarray, got_a: np.ndarray,
                   rays: int) -> DirectTally:
@@ -185,7 +230,7 @@ class DirectPhase:
             batch = source.rays(m, s.rng)
             batch.power = batch.power * (m / n)  # each batch an unbiased estimate of its share
             tally = s.fire(batch, t0)
-            s.commit(batch, tally)
+            self._book(batch, tally)
             rays += s.counted(1 if lo == 0 else 0, m)
         return rays
 
@@ -217,12 +262,14 @@ class DirectPhase:
         gathered = self._gathered(got, rows[keep], np.zeros(3), got * share_a, shadow)
         tally = rescale_to_landed(gathered, shot, p)
         if tally is None:  # its rays landed light where no patch faces it: keep the rays' own result
-            s.commit(batch, shot)
+            self._book(batch, shot)
             self.sources_shot = True
             s.choices.add("direct", f"{source.name}: its light shot, not gathered: its rays landed light where "
                                        f"the exact gather found none")
             return s.counted(1, shadow + n)
-        s.commit(None, tally, shot=power[None, :])
+        if getattr(source, "outside", False):  # the sun: its books hold what lands, as the sky's
+            tally, power = self._landed_only(tally, power)
+        self._book(None, tally, shot=power[None, :])
         if self.source_light is None:
             self.source_light = (np.zeros((len(p), 3)), np.zeros((len(p), 3)))
         np.add.at(self.source_light[0], tally.hit, tally.received)

@@ -45,6 +45,7 @@ import json
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -595,7 +596,7 @@ def tally_from_arrays(arrays: dict, n: int) -> DirectTally:
         raise ValueError("a direct tally's received rows do not match its hit rows")
     if len(hit) and (hit.min() < 0 or hit.max() >= n):
         raise ValueError(f"a direct tally names patches outside 0..{n - 1}")
-    vals = {name: np.asarray(arrays[name]) for name in _TALLY}
+    vals: dict[str, Any] = {name: np.asarray(arrays[name]) for name in _TALLY}
     vals["hit"], vals["received"] = hit, received
     return DirectTally(**vals, rays=int(np.asarray(arrays["rays"]).ravel()[0]))
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["DEFAULT_IOR", "MAX_PANES", "Glazing", "pane_transmittance", "fresnel", "check_single", "opaque_for"]
+__all__ = ["DEFAULT_IOR", "MAX_PANES", "Glazing", "pane_transmittance", "fresnel"]
 
 #: refractive index of glass when the file gives none (soda-lime float glass)
 DEFAULT_IOR = 1.52
@@ -103,24 +103,3 @@ class Glazing:
 
     def take(self, rows: np.ndarray) -> "Glazing":
         return Glazing(self.mask[rows], self.tau_n[rows], self.ior[rows])
-
-
-def check_single(glazing: Glazing | None, how: str) -> None:
-    """ConfigError when a run that cannot carry glass yet (``how``: divided, shared) is asked to."""
-    if glazing is not None and glazing.mask.any():
-        from dcrad.errors import ConfigError  # noqa: PLC0415  (a leaf module otherwise)
-
-        raise ConfigError(f"glass ({int(glazing.mask.sum())} pane patches) runs in one process for now "
-                          f"(--workers 0, one subscene), not {how}")
-
-
-def opaque_for(patches, how: str) -> str | None:
-    """A run that cannot carry glass yet (``how``: "divided", "the service's") takes the scene's panes
-    as opaque surfaces (their diffuse reflectance only) rather than refusing a model with windows:
-    drops ``patches.glazing`` and returns the warning that says so (None without glass)."""
-    glazing = patches.glazing
-    if glazing is None or not glazing.mask.any():
-        return None
-    patches.glazing = None
-    return (f"glass: {int(glazing.mask.sum())} pane patches are opaque in {how} runs for now (their Kd reflects, "
-            f"no light passes); solve in one process (--workers 0, one subscene) to let light through them")

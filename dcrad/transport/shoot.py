@@ -12,7 +12,7 @@ dropped, so the ledger closes to float64 round-off.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -77,6 +77,9 @@ class Tally:
     lost: np.ndarray
     #: (k,3) W of ``received`` that came by rays of half A (noise.py); None: rays not split
     received_a: np.ndarray | None = None
+    #: the rays ``portal`` indexes when they are not the batch's: through glass, one row per power
+    #: that ends somewhere, from where it set out (``through_panes``); None: the batch's own
+    ends: RayBatch | None = field(default=None, kw_only=True)
 
 
 def ray_offset(patches: Patches) -> float:
@@ -265,6 +268,7 @@ def trace(tracer: Tracer, batch: RayBatch, patches: Patches, channels: int = 3) 
         kept=kept,
         lost=colsum(np.abs(power_back)) + colsum(np.abs(power_missed)),
         received_a=received_a,
+        ends=batch if tracer.glazing is not None else None,
     )
 
 
@@ -288,18 +292,21 @@ def through_panes(tracer: Tracer, batch: RayBatch, prim: np.ndarray, t: np.ndarr
         if len(rows):
             d = dirs[rows]
             tau = glazing.crossing(prim[rows], ng[rows], d)
-            ends.append((prim[rows], t[rows], ng[rows], d, power[rows] * (1.0 - tau),
+            ends.append((prim[rows], t[rows], ng[rows], d, power[rows] * (1.0 - tau), origins[rows],
                          None if half is None else half[rows]))
-        ends.append((prim[stop], t[stop], ng[stop], dirs[stop], power[stop], None if half is None else half[stop]))
+        ends.append((prim[stop], t[stop], ng[stop], dirs[stop], power[stop], origins[stop],
+                     None if half is None else half[stop]))
         if not len(rows):
             break
         origins = origins[rows] + (t[rows] + step)[:, None] * dirs[rows]
         dirs, power = dirs[rows], power[rows] * tau
         half = None if half is None else half[rows]
         prim, t, ng = tracer.intersect(origins, dirs, normals=True)
-    cat = [np.concatenate(column) for column in zip(*[e[:5] for e in ends])]
-    halves = None if batch.half is None else np.concatenate([e[5] for e in ends])
-    events = RayBatch(origins=cat[3], dirs=cat[3], power=cat[4], shooter=np.zeros(len(cat[0]), np.int64),
+    cat = [np.concatenate(column) for column in zip(*[e[:6] for e in ends])]
+    halves = None if batch.half is None else np.concatenate([e[6] for e in ends])
+    # each end from where its power set out (the batch's origin, or just beyond the last pane):
+    # a boundary's crossing point is origin + t dir (a subscene's exact forwarding continues it there)
+    events = RayBatch(origins=cat[5], dirs=cat[3], power=cat[4], shooter=np.zeros(len(cat[0]), np.int64),
                       half=halves)
     return cat[0], cat[1], cat[2], events
 
