@@ -143,18 +143,25 @@ class DirectPhase:
         # the books hold what lands, not all the light into the bounding box (30x more for a side-lit
         # room): the run's density and its unshot share (the stop rule's "all shot") are of that
         corners = p.corners(rows)
+        gather_ray = s.power_per_ray
         if len(rows):
             guess = source.pilot(corners.mean(axis=1), p.normal[rows], s.tracer, ray_offset(p))
             landed_guess = guess * float(p.area[rows].sum())
-            # the power per ray follows the books' emitted light, the sky's share of it now what lands
-            # (scaled by landed / flux alone, the other sources' share shrank with it: the sun's, 80x)
+            # the run's power per ray follows the books' emitted light, the sky's share of it now what
+            # lands (scaled by landed / flux alone, the other sources' shrank with it: the sun's, 80x)
             total = float(s.ledger.emitted.mean())
             if 0.0 < landed_guess < float(power.mean()) and total > 0:
-                s.power_per_ray *= (total - float(power.mean()) + landed_guess) / total
+                now = total - float(power.mean()) + landed_guess
+                s.power_per_ray *= now / total
+                # ... and its gather takes the rays the run's density gives the sky's light alone: a
+                # sampled gather is noisier per ray than shooting, and at the sky's share of the
+                # density (office3, lamps on) its first pass ended on its noise floor: 3 passes,
+                # 22.7M rays against 9.9M
+                gather_ray = s.power_per_ray * landed_guess / now
         # a receiver takes the rays the light landing on it would at the run's density, its mean
         # irradiance read as the pilot's: half the rays aim at the openings, so most of them count
         # (a plane that saw the whole sky in the count cost office3 451M rays for its 41,710 receivers)
-        per_half = np.ceil(0.5 * source.pilot_mean * p.area[rows] / s.power_per_ray)
+        per_half = np.ceil(0.5 * source.pilot_mean * p.area[rows] / gather_ray)
         counts = np.clip(per_half, SAMPLED_MIN_RAYS, SAMPLED_MAX_RAYS).astype(np.int64)
         left = s.budget.left()
         cap = SAMPLED_BUDGET_SHARE * left if left is not None else math.inf
