@@ -93,8 +93,9 @@ def gather_outside(patches: Patches, config: SolverConfig) -> OutsideLight | Non
     gathers it (``DirectPhase.shoot_sources`` on a Solver of the whole scene, its light kept, not the
     Solver); None when no source shines from outside.  ``patches`` is not changed.
 
-    In accuracy mode (no ray budget) the gather's noise is held to NOISE_SHARE of the target: a run
-    in one process lowers it by further passes, a divided one cannot.  A denser gather is combined
+    In accuracy mode (no ray budget) the gather's noise, in proportion to its share of the run's
+    light, is held to NOISE_SHARE of the target: a run in one process lowers it by further passes, a
+    divided one cannot.  A denser gather is combined
     with the ones before it in proportion to their rays (each is unbiased; its halves stay
     independent)."""
     outside = outside_sources(patches.sources)
@@ -104,16 +105,23 @@ def gather_outside(patches: Patches, config: SolverConfig) -> OutsideLight | Non
     light = _gather(patches, config, outside)
     goal = NOISE_SHARE * config.accuracy
     density = config.rays_per_power
+    # the rest of the run's light dilutes the gather's noise: office3's lamps emit 4x what the sky lands
+    # there, and held to the sky's own light its gather went on to 30M rays (the run ends on the
+    # shooting's noise floor all the same)
+    others = float(patches.emitted_power.sum()) + sum(float(np.sum(s.power())) for s in patches.sources
+                                                      if not getattr(s, "outside", False))
     for k in range(1, MAX_GATHERS):
-        noise = light.noise(patches)
+        landed = float((light.irradiance * patches.area[:, None]).sum())
+        noise = light.noise(patches) * (landed / (landed + others) if landed > 0 else 1.0)
         if not (goal > 0 and not config.max_rays and noise > goal):
             break
         density *= min(GROWTH, 1.1 * (noise / goal) ** 2)
         more = _gather(patches, config.replace(rays_per_power=density, seed=config.seed + k * PASS_SEED), outside)
         light = light.combine(more)
         light.choices.add("direct", f"{light.name}: gathered again at {density:.3g} rays per emitted power: the "
-                                    f"gather before read {noise:.4f} of the direct light it reflects, above "
-                                    f"{NOISE_SHARE:g} of the target (a divided run has no further passes)")
+                                    f"gather before read {noise:.4f} of the run's light (its noise on the light it "
+                                    f"reflects, times its share of the light), above {NOISE_SHARE:g} of the target "
+                                    f"(a divided run has no further passes)")
     return light
 
 
