@@ -617,7 +617,7 @@ def test_the_gathered_sky_travels_to_a_worker_exactly(tmp_path):
     assert arrays["sources"].nbytes < 1000  # the per-patch arrays are beside the JSON, not in it
     (back,) = [s for s in sources_from_table(sources_table(sub.patches.sources)) if isinstance(s, Gathered)]
     (orig,) = [s for s in sub.patches.sources if isinstance(s, Gathered)]
-    for name in ("rows", "received", "received_a", "escaped", "back_faces"):
+    for name in ("rows", "received", "received_a"):
         assert np.array_equal(getattr(back, name), getattr(orig, name))
     assert back.rays == orig.rays
     twin = build_subscene(specs[0].cell, sub.config, sub.power_per_ray, sub.mode, list(p.names),

@@ -9,8 +9,9 @@ halves included), and each subscene is handed what landed on its patches (``Outs
 an ``emitters.Gathered``): its pieces take their parent's irradiance times their area, which the
 clipping conserves.  The subscene books it as emitted and lays it down at its first iterate
 (``DirectPhase.deposit``); from there it is reflected and crosses the boundaries like any light.
-What the gather lost (escaped, met back faces) and the rays it took go with the first cell's share,
-so the job's books are those of the run in one process.
+The books hold what lands, as a run in one process books the sky's and the sun's light: what met
+the envelope's outside or passed the model by never entered it.  The gather's rays go with the
+first cell's share.
 """
 
 from __future__ import annotations
@@ -44,8 +45,6 @@ class OutsideLight:
     name: str
     irradiance: np.ndarray  #: (n,3) W/m^2 on each patch of the whole table
     irradiance_a: np.ndarray  #: (n,3) W/m^2 of it from half A's samples
-    escaped: np.ndarray  #: (3,) W that left the model
-    back_faces: np.ndarray  #: (3,) W that met back faces (the envelope's outside)
     rays: int  #: rays the gather traced
     choices: Choices  #: what the gather chose (the report's lines)
 
@@ -62,15 +61,13 @@ class OutsideLight:
         w = self.rays / max(self.rays + other.rays, 1)
         return OutsideLight(self.name, w * self.irradiance + (1 - w) * other.irradiance,
                             w * self.irradiance_a + (1 - w) * other.irradiance_a,
-                            w * self.escaped + (1 - w) * other.escaped,
-                            w * self.back_faces + (1 - w) * other.back_faces,
                             self.rays + other.rays, Choices([*self.choices, *(c for c in other.choices
                                                                               if c not in self.choices)]))
 
     def for_cell(self, sub: Patches, parent: np.ndarray, first: bool) -> Gathered | None:
         """The light that landed on a cell's pieces (``sub``, their ``parent`` rows of the whole table);
-        the losses and the rays with the ``first`` cell's.  None when nothing landed there and it is
-        not the first."""
+        the gather's rays with the ``first`` cell's.  None when nothing landed there and it is not the
+        first."""
         got = self.irradiance[parent]
         rows = np.flatnonzero(got.any(axis=1))
         if not len(rows) and not first:
@@ -133,12 +130,9 @@ def _gather(patches: Patches, config: SolverConfig, outside: tuple) -> OutsideLi
     solver.direct.shoot_sources()
     n = len(patches)
     got, got_a = np.zeros((n, 3)), np.zeros((n, 3))
-    escaped, back = np.zeros(3), np.zeros(3)
     for t in solver.direct.kept:
         np.add.at(got, t.hit, t.received)
         np.add.at(got_a, t.hit, t.received_a if t.received_a is not None else 0.5 * t.received)
-        escaped += t.escaped
-        back += t.back_faces
     area = np.maximum(patches.area, 1e-300)[:, None]
     names = " and ".join(s.name for s in outside)
-    return OutsideLight(names, got / area, got_a / area, escaped, back, solver.stats.rays, solver.choices)
+    return OutsideLight(names, got / area, got_a / area, solver.stats.rays, solver.choices)

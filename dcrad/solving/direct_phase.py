@@ -106,13 +106,11 @@ class DirectPhase:
 
     def deposit(self, source) -> int:
         """Lay down a light gathered elsewhere (emitters.Gathered: a divided run's sky and sun, gathered on
-        the whole scene): what landed on each receiver, its half A, and what it lost, booked as this
-        run's emitted light (``__init__``) and shot; its gather's rays counted here.  No final plan:
-        its light may be a sampled estimate, as the sky's.  Returns the rays counted."""
+        the whole scene): what landed on each receiver and its half A, booked as this run's emitted
+        light (``__init__``) and shot; its gather's rays counted here.  No final plan: its light may be
+        a sampled estimate, as the sky's.  Returns the rays counted."""
         s = self.solver
-        tally = self._gathered(source.received, source.rows, source.escaped, source.received_a, source.rays)
-        tally.back_faces = np.asarray(source.back_faces, np.float64)
-        tally.lost = np.abs(tally.escaped) + np.abs(tally.back_faces)
+        tally = self._gathered(source.received, source.rows, np.zeros(3), source.received_a, source.rays)
         s.commit(None, tally, shot=np.asarray(source.power(), np.float64)[None, :])
         self.sources_shot = True
         return s.counted(1, source.rays)

@@ -253,33 +253,28 @@ def sources_power(sources) -> np.ndarray:
 class Gathered:
     """Light already gathered onto some patches (``rows``): the sky and the sun of a divided run,
     gathered on the whole scene before it is cut (division/outside.py), whose lines of sight no
-    subscene could follow out of the model.  ``DirectPhase.deposit`` books it as its run's emitted
-    light and lays it where it landed, in the gather's two halves (noise.py), with the power it lost
-    (escaped, on back faces) and the rays it took.  It sends no rays and has no point estimate:
+    subscene could follow out of the model.  ``DirectPhase.deposit`` books what landed as its run's
+    emitted light (the books of light from outside hold what lands) and lays it down, in the gather's
+    two halves (noise.py), and counts the rays it took.  It sends no rays and has no point estimate:
     the outputs read the original sources."""
 
     name: str
     rows: np.ndarray  #: (m,) i8 the receivers, sorted and distinct
     received: np.ndarray  #: (m,3) W landed on each
     received_a: np.ndarray  #: (m,3) W of it from half A's samples
-    escaped: np.ndarray = field(default_factory=lambda: np.zeros(3))  #: (3,) W that left the model
-    back_faces: np.ndarray = field(default_factory=lambda: np.zeros(3))  #: (3,) W that met back faces
     rays: int = 0  #: rays the gather traced
-    exact = False
     gathered = True  #: DirectPhase lays it down (``deposit``): nothing to trace
 
     def power(self) -> np.ndarray:
-        """(3,) W: what it landed and what it lost, the light its gather spent."""
-        return self.received.sum(axis=0) + self.escaped + self.back_faces
+        """(3,) W: what it landed."""
+        return self.received.sum(axis=0)
 
     def to_wire(self) -> dict:
         """source_wire.py: the per-receiver arrays travel as arrays, the rest as JSON."""
         return {"name": self.name, "rows": self.rows, "received": self.received, "received_a": self.received_a,
-                "escaped": np.asarray(self.escaped, np.float64).tolist(),
-                "back_faces": np.asarray(self.back_faces, np.float64).tolist(), "rays": int(self.rays)}
+                "rays": int(self.rays)}
 
     @classmethod
     def from_wire(cls, d: dict) -> "Gathered":
         return cls(str(d["name"]), np.asarray(d["rows"], np.int64), np.asarray(d["received"], np.float64),
-                   np.asarray(d["received_a"], np.float64), np.array(d["escaped"], np.float64),
-                   np.array(d["back_faces"], np.float64), int(d["rays"]))
+                   np.asarray(d["received_a"], np.float64), int(d["rays"]))
