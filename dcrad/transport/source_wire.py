@@ -4,8 +4,9 @@ A shared run's workers each hold the whole scene: the patch table travels as arr
 (``Patches.table_arrays``) and its light sources beside it, as one array ``sources`` of
 UTF-8 JSON: a list of each source's ``to_wire()`` with its kind.  JSON keeps every float
 exact (the shortest repr that reads back to the same double), so a worker's copy of a source
-lights the scene to the bit as the coordinator's does.  A new kind of emitter that should run on
-workers adds ``to_wire`` / ``from_wire`` and a line to ``KINDS``.
+lights the scene to the bit as the coordinator's does.  Arrays a source gives in its ``to_wire``
+(a divided run's ``Gathered`` light, per patch) travel beside the JSON as arrays of their own.  A new
+kind of emitter that should run on workers adds ``to_wire`` / ``from_wire`` and a line to ``KINDS``.
 """
 
 from __future__ import annotations
