@@ -553,9 +553,9 @@ def test_a_daylit_room_divided_reads_as_in_one_process(tmp_path):
     forwarding, and binned twins) and in four, lights its floor as the run in one process does
     (within 3%), its books closed and its estimate at the target.  The sky is gathered once on the
     whole room: what each cell is handed sums to what landed (clipping conserves area), its rays are
-    the run's, and the job books as emitted what the run in one process does (what lands, within
-    the gathers' noise).  Through ``solve_to`` the report has its daylight and divided sections and
-    says the sky was gathered before the cut."""
+    the run's from the first barrier on, and the job books as emitted what the run in one process
+    does (what lands, within the gathers' noise).  Through ``solve_to`` the report has its daylight
+    and divided sections and says the sky was gathered before the cut."""
     from dcrad.config import DivideConfig
     from dcrad.division.divide import solve_divided, subscene_specs
     from dcrad.division.outside import gather_outside
@@ -590,6 +590,7 @@ def test_a_daylit_room_divided_reads_as_in_one_process(tmp_path):
     landed = (outside.irradiance * p.area[:, None]).sum(axis=0)
     np.testing.assert_allclose(sum(g.power() for g in handed), landed, rtol=1e-12)
     assert sum(g.rays for g in handed) == outside.rays
+    assert sum(s.state().rays for s in specs) == outside.rays  # traced already: a budget counts them first
     assert not any(getattr(s, "outside", False) for spec_ in specs for s in spec_.patches.sources)
     assert float(sources_power(specs[0].patches.sources).sum()) > 0
     report = solve_to(path, tmp_path / "out", cfg, patch_size=0.3, divide=DivideConfig(subscenes=2), daylight=spec)

@@ -45,6 +45,7 @@ from dcrad.division.subscene import (
     Subscene,
     SubsceneHandle,
     SubsceneState,
+    gathered_rays,
 )
 from dcrad.errors import ConfigError
 from dcrad.estimate.noise import Estimate, NoiseSums, NoiseTally, bias_ambient, combine, finite
@@ -345,7 +346,8 @@ class SubsceneSpec:
         led = Ledger(emitted=p.emitted_power + own)
         led.unshot = p.unshot_power + own
         led.unshot_abs = (np.abs(p.unshot) * p.area[:, None]).sum(axis=0) + np.abs(own)
-        return SubsceneState(self.cell, led, 0, 0, 0, 0, p.total_area, back_by_obj=np.zeros(max(len(p.names), 1)),
+        return SubsceneState(self.cell, led, 0, gathered_rays(p.sources), 0, 0, p.total_area,
+                             back_by_obj=np.zeros(max(len(p.names), 1)),
                              noise=NoiseTally(p).sums())
 
 

@@ -484,7 +484,8 @@ class Subscene(Solver):
         led = self.ledger.copy()
         waiting = sources_power(self.direct.sources_left)  # booked as emitted, not shot yet: held as unshot
         led.unshot, led.unshot_abs = led.unshot + waiting, led.unshot_abs + np.abs(waiting)
-        return SubsceneState(self.cell, led, self.stats.shots, self.stats.rays,
+        rays = self.stats.rays + gathered_rays(self.direct.sources_left)
+        return SubsceneState(self.cell, led, self.stats.shots, rays,
                              sum(len(h) for h in held), sum(h.nbytes() for h in held),
                              self.patches.total_area, self.tallies.copy(),
                              self.twins_delivered, self.twin_blocks, self.stats.batches,
@@ -495,6 +496,11 @@ class Subscene(Solver):
 
     def interrupt(self) -> None:
         self.interrupted = True
+
+def gathered_rays(sources) -> int:
+    """Rays the light gathered before the cut (emitters.Gathered, not laid down yet) took: traced
+    already, so counted from the start (a --max-rays budget's first barrier shares out the rest)."""
+    return sum(int(s.rays) for s in sources if getattr(s, "gathered", False))
 
 # == moving subscenes between processes (no networking here: plain arrays) ==========
 
