@@ -212,7 +212,9 @@ def ray_shares(states: list[SubsceneState], rays_left: int) -> dict:
         return {s.cell: 0 for s in states}
     held = np.array([float(s.ledger.held().sum()) for s in states])
     weight = held / held.sum() if held.sum() > 0 else np.full(len(states), 1.0 / max(len(states), 1))
-    return {s.cell: max(int(rays_left * w), 1) for s, w in zip(states, weight)}
+    # rounded up: the shares hold inside a barrier (Subscene.batch_limit), and rounded down they left a
+    # few rays of the budget to a barrier of its own
+    return {s.cell: max(math.ceil(rays_left * w), 1) for s, w in zip(states, weight)}
 
 
 def run_divided(handles: Sequence[SubsceneHandle], boundaries: list[Boundary], config: SolverConfig,

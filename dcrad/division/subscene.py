@@ -186,6 +186,8 @@ class Subscene(Solver):
         #: counted exactly at barriers (``_book_in_flight``), kept from each batch's moves in between
         self._held_sum = np.zeros((3, 3))
         self._held_abs = np.zeros((3, 3))
+        #: rays left of this barrier's share of the job's ray budget (None: no budget; ``iterate``)
+        self._share_left: int | None = None
 
     def stiffness(self) -> Stiffness:
         """The job's stiffness, estimated by ``run_divided`` at the barrier (none before)."""
@@ -291,9 +293,25 @@ class Subscene(Solver):
         self._held_abs[i] += magnitude
         self._in_flight_to_ledger()
 
+    def batch_limit(self) -> int:
+        """The batch's rays, within what this barrier's share of the job's ray budget leaves (a
+        barrier's check after each batch let a lamp room's two subscenes trace 142,504 rays for
+        --max-rays 100,000: a batch each past their shares)."""
+        limit = super().batch_limit()
+        return min(limit, max(self._share_left, 1)) if self._share_left is not None else limit
+
+    def rank(self, power: np.ndarray, min_rays=None, max_shooters=None, ray_factor: float = 1.0):
+        """``Solver.rank``, its one shot at least cut to what the barrier's share leaves (its rays carry
+        more power each: the share holds, unbiased, noisier)."""
+        idx, counts = super().rank(power, min_rays, max_shooters, ray_factor)
+        if self._share_left is not None and len(counts) and counts.sum() > self._share_left:
+            counts = counts.copy()
+            counts[0] = max(min(int(counts[0]), self._share_left), 1)
+        return idx, counts
+
     def step_forwarded(self) -> int:
-        """Exact mode: continue up to batch_rays rays handed over by neighbours."""
-        part = self.forward.take_front(self.config.batch_rays)
+        """Exact mode: continue up to a batch's rays handed over by neighbours."""
+        part = self.forward.take_front(self.batch_limit())
         self._moved(2, -part.total(), -part.total_abs())
         side = np.ones(len(part))
         for b in self.boundaries:
@@ -441,10 +459,12 @@ class Subscene(Solver):
                 break
             if isinstance(self.sent, RayParcel) and len(self.sent) >= cap:
                 break
+            self._share_left = plan.rays_left - rays if plan is not None and plan.rays_left else None
             r = self.step()
             if r == 0:
                 break
             rays += r
+        self._share_left = None
         return rays
 
     def collect(self) -> TwinBuffer | RayParcel:

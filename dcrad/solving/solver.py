@@ -253,10 +253,14 @@ class Solver:
         counts = np.clip(np.ceil(scalar[idx] / (self.power_per_ray * ray_factor)), floor, cfg.max_rays_per_shot)
         counts = counts.astype(np.int64)
         # the batch, and what the run's ray budget leaves of it (one shot at least)
-        limit = min(cfg.batch_rays, cfg.max_rays - self.stats.rays) if cfg.max_rays else cfg.batch_rays
-        fits = np.cumsum(counts) <= limit
+        fits = np.cumsum(counts) <= self.batch_limit()
         fits[:1] = True
         return idx[fits], counts[fits]
+
+    def batch_limit(self) -> int:
+        """Rays the next batch may trace: ``batch_rays``, or what the run's ray budget leaves of it."""
+        cfg = self.config
+        return min(cfg.batch_rays, cfg.max_rays - self.stats.rays) if cfg.max_rays else cfg.batch_rays
 
     def select(self):
         """Choose this batch's shooters: (indices (k,), ray counts (k,), power (k,3) W, amounts (k,3) W/m^2,
