@@ -599,6 +599,25 @@ def test_a_daylit_room_divided_reads_as_in_one_process(tmp_path):
     assert any("gathered onto" in c["text"] for c in report["choices"])
 
 
+def test_a_closed_room_under_the_sky_says_no_daylight_gets_in(tmp_path):
+    """A grey box with no opening under the sky: nothing lands, every surface reads 0 lux, and the
+    report says why (in one process and divided alike) rather than warning of no emitters."""
+    from dcrad.config import DivideConfig
+    from dcrad.pipeline import solve_to
+
+    w = ObjWriter()
+    w.material("wall", 0.5)
+    w.begin("room", "wall")
+    w.add_box((0, 0, 0), (SIZE, HEIGHT, SIZE), outward=False)
+    path = w.write(tmp_path, "closed")
+    for divide in (None, DivideConfig(subscenes=2)):
+        report = solve_to(path, tmp_path / str(divide is None), SolverConfig(accuracy=0.05, seed=1), patch_size=0.5,
+                          divide=divide, daylight=DaylightSpec("uniform"), width=32, height=24)
+        assert any("lets it in" in c["text"] for c in report["choices"])
+        assert all(s["E_avg_lux"] == 0.0 for s in report["photometry"]["surfaces"])
+        assert not any("no emitters" in w_ for w_ in report["warnings"])
+
+
 def test_the_gathered_sky_travels_to_a_worker_exactly(tmp_path):
     """A subscene's share of the sky (emitters.Gathered) travels with its patches as arrays, not JSON,
     and comes back to the bit; a rebuilt subscene lays it down as the original does."""

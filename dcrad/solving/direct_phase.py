@@ -179,6 +179,9 @@ class DirectPhase:
         if np.all(landed > 0):  # it emitted, in the books, what it landed: nothing escapes
             s.ledger.emitted = s.ledger.emitted + landed - power
             power = landed
+        elif not np.any(landed > 0):  # a closed model, or one whose openings only black surfaces see
+            s.choices.add("direct", f"{source.name}: none of its light lands on a surface that reflects: no "
+                                    f"opening or pane lets it in where anything reflects")
         tally = self._gathered(got, rows[keep], power - landed, received_a[keep], int(2 * counts.sum()))
         self._book(None, tally, shot=power[None, :])
         self.sources_shot = True
