@@ -36,7 +36,7 @@ from dcrad.division.boundary import (
     boundary_mode,
     make_boundary,
 )
-from dcrad.division.outside import OutsideLight, gather_outside
+from dcrad.division.outside import OutsideLight, gather_outside, split_outside
 from dcrad.division.partition import clip, partition
 from dcrad.division.placement import check_subscenes
 from dcrad.division.subscene import (
@@ -367,7 +367,7 @@ def subscene_specs(patches: Patches, config: SolverConfig, divide: DivideConfig,
     config = resolve(config, patches.read_units)  # the job's ray density: from its patch count
     if outside is None:
         outside = gather_outside(patches, config)
-    others = tuple(s for s in patches.sources if not getattr(s, "outside", False))
+    _, others = split_outside(patches.sources)
     # balanced by light (CUT_WORK): a subscene's iterates cost in proportion to its lamps, and
     # cells of equal area differ in lamps.  Binned twins keep the area cut: by light, the cut
     # moves toward the lamps, and binned twins blur the light that crosses open space there

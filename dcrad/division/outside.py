@@ -28,14 +28,16 @@ from dcrad.meshing.patches import Patches
 from dcrad.solving.accuracy import resolve
 from dcrad.solving.passes import PASS_SEED
 from dcrad.solving.solver import Solver
-from dcrad.transport.emitters import Gathered
+from dcrad.transport.emitters import Gathered, sources_power
 
-__all__ = ["OutsideLight", "gather_outside", "outside_sources"]
+__all__ = ["OutsideLight", "gather_outside", "split_outside"]
 
 
-def outside_sources(sources) -> tuple:
-    """The light sources among ``sources`` that shine from outside the model (``outside``: sky.py)."""
-    return tuple(s for s in sources if getattr(s, "outside", False))
+def split_outside(sources) -> tuple[tuple, tuple]:
+    """(the light sources among ``sources`` that shine from outside the model (``outside``: sky.py),
+    the others)."""
+    inside = tuple(s for s in sources if not getattr(s, "outside", False))
+    return tuple(s for s in sources if getattr(s, "outside", False)), inside
 
 
 @dataclass
@@ -95,7 +97,7 @@ def gather_outside(patches: Patches, config: SolverConfig) -> OutsideLight | Non
     divided one cannot.  A denser gather is combined
     with the ones before it in proportion to their rays (each is unbiased; its halves stay
     independent)."""
-    outside = outside_sources(patches.sources)
+    outside, inside = split_outside(patches.sources)
     if not outside:
         return None
     config = resolve(config, patches.read_units)
@@ -105,8 +107,7 @@ def gather_outside(patches: Patches, config: SolverConfig) -> OutsideLight | Non
     # the rest of the run's light dilutes the gather's noise: office3's lamps emit 4x what the sky lands
     # there, and held to the sky's own light its gather went on to 30M rays (the run ends on the
     # shooting's noise floor all the same)
-    others = float(patches.emitted_power.sum()) + sum(float(np.sum(s.power())) for s in patches.sources
-                                                      if not getattr(s, "outside", False))
+    others = float(patches.emitted_power.sum()) + float(sources_power(inside).sum())
     for k in range(1, MAX_GATHERS):
         landed = float((light.irradiance * patches.area[:, None]).sum())
         noise = light.noise(patches) * (landed / (landed + others) if landed > 0 else 1.0)
